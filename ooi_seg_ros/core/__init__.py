@@ -1,0 +1,1 @@
+"""ROS-free core: shared types, geometry conventions, configuration helpers."""

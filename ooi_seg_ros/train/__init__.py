@@ -1,0 +1,1 @@
+"""ooi_seg_ros.train"""
