@@ -115,7 +115,8 @@ def pose_from_colmap(qvec_wxyz: np.ndarray, tvec: np.ndarray) -> Pose:
     return Pose(R_cw.T, -R_cw.T @ np.asarray(tvec, float))
 
 
-def project(points: np.ndarray, cam: CameraIntrinsics, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+def project(points: np.ndarray, cam: CameraIntrinsics,
+            pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates [N,2] and depths [N] of world points in an undistorted pinhole view."""
     R_cw, t_cw = pose.world_to_cam()
     pc = np.asarray(points, float) @ R_cw.T + t_cw
@@ -126,7 +127,8 @@ def project(points: np.ndarray, cam: CameraIntrinsics, pose: Pose) -> tuple[np.n
     return np.stack([u, v], axis=1), z
 
 
-def pixel_rays(cam: CameraIntrinsics, pose: Pose, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def pixel_rays(cam: CameraIntrinsics, pose: Pose,
+               stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Ray origins [H*W,3] and unit directions [H*W,3] through pixel centres (row-major)."""
     us = np.arange(0, cam.width, stride, dtype=float)
     vs = np.arange(0, cam.height, stride, dtype=float)
