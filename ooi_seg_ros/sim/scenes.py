@@ -75,8 +75,8 @@ def _scatter(rng: np.random.Generator, n: int, r_min: float, r_max: float,
 def _aircraft(b: _Builder, seed: int) -> None:
     """A business jet (~20 m) standing on its landing gear at z = 0, nose towards +x."""
     white = b.mat("paint_white", Material(
-        (rgb255(188, 192, 198), rgb255(246, 246, 248)), scale=2.0, octaves=6, contrast=1.6,
-        spot_color=rgb255(150, 146, 138), spot_frac=0.07, spot_scale=1.2,
+        (rgb255(166, 172, 180), rgb255(242, 242, 244)), scale=1.5, octaves=6, contrast=1.8,
+        spot_color=rgb255(128, 124, 116), spot_frac=0.1, spot_scale=0.8,
         grid=(1.1, 0.035, 0.45), seed=1,
         decals=(Decal((-10, -3, 1.95), (8.6, 3, 2.3), rgb255(24, 46, 110)),  # cheat line
                 Decal((-10, -3, 2.3), (8.6, 3, 2.4), rgb255(190, 30, 40)),
@@ -85,8 +85,8 @@ def _aircraft(b: _Builder, seed: int) -> None:
                 Decal((7.6, -3, 2.55), (8.7, 3, 3.2), rgb255(20, 24, 32), 0.1),  # windscreen
                 Decal((-2.8, -3, 1.2), (-1.0, 3, 1.6), rgb255(60, 66, 80), 0.2))))
     wing = b.mat("paint_wing", Material(
-        (rgb255(150, 156, 164), rgb255(220, 224, 228)), scale=1.6, octaves=6, contrast=1.5,
-        spot_color=rgb255(90, 92, 96), spot_frac=0.06, spot_scale=0.8,
+        (rgb255(140, 146, 156), rgb255(225, 228, 232)), scale=1.2, octaves=6, contrast=1.8,
+        spot_color=rgb255(90, 92, 96), spot_frac=0.1, spot_scale=0.6,
         grid=(0.9, 0.03, 0.4), seed=2,
         decals=(Decal((-6, -9, 1.0), (0, -8.3, 3.0), rgb255(190, 30, 40)),
                 Decal((-6, 8.3, 1.0), (0, 9, 3.0), rgb255(190, 30, 40)))))
@@ -283,7 +283,7 @@ def make_aircraft(seed: int) -> SimScene:
     _hangar(b, seed)
     return SimScene(
         "aircraft", seed, b.parts, b.materials,
-        Lighting(direction=(0.25, 0.35, 1.0), ambient=0.5, diffuse=0.6, shadow=0.55),
+        Lighting(direction=(0.25, 0.35, 1.0), ambient=0.44, diffuse=0.56, shadow=0.55),
         support_z=0.0,
         camera_bounds=(np.array([-43.0, -38.0, 1.0]), np.array([43.0, 38.0, 22.0])),
         rings=(Ring(12.0, 2.0), Ring(26.0, 1.8), Ring(42.0, 1.6)), indoor=True,
@@ -298,10 +298,11 @@ def _room(b: _Builder, rng: np.random.Generator, X: float, Y: float, Z: float,
           wall_color: tuple) -> None:
     """A room with plank floor, painted walls, a window, pictures, ceiling, bookshelf, lamp."""
     floor = b.mat("planks", Material(
-        (rgb255(110, 70, 40), rgb255(190, 140, 90)), scale=0.5, octaves=6, contrast=1.5,
-        grain=0.12, stripes=((0.0, 1.0, 0.0), 0.16, 0.05, rgb255(50, 30, 18)), seed=30))
+        (rgb255(110, 70, 40), rgb255(190, 140, 90)), scale=0.4, octaves=6, contrast=1.8,
+        grain=0.3, stripes=((0.0, 1.0, 0.0), 0.16, 0.05, rgb255(50, 30, 18)), seed=30))
     wall = b.mat("plaster", Material(
-        (tuple(c * 0.8 for c in wall_color), wall_color), scale=0.7, octaves=6, contrast=1.3,
+        (tuple(c * 0.75 for c in wall_color), wall_color), scale=0.5, octaves=6, contrast=1.6,
+        grain=0.2,
         spot_color=tuple(c * 0.85 for c in wall_color), spot_frac=0.03, seed=31,
         decals=(Decal((-9, -9, -1), (9, 9, 0.1), rgb255(240, 240, 236), 0.1),)))
     ceiling = b.mat("ceiling", Material(
@@ -420,8 +421,9 @@ def make_tabletop(seed: int) -> SimScene:
     X, Y, Z = 2.5, 2.0, 2.6
     _room(b, rng, X, Y, Z, rgb255(200, 196, 178))
     table = b.mat("table_wood", Material(
-        (rgb255(100, 60, 30), rgb255(180, 120, 70)), scale=0.25, octaves=6, contrast=1.6,
-        grain=0.1, stripes=((1.0, 0.0, 0.0), 0.12, 0.04, rgb255(70, 40, 20)), seed=70))
+        (rgb255(96, 56, 28), rgb255(190, 128, 74)), scale=0.2, octaves=6, contrast=2.0,
+        grain=0.35, spot_color=rgb255(70, 40, 20), spot_frac=0.06, spot_scale=0.03,
+        stripes=((1.0, 0.0, 0.0), 0.12, 0.04, rgb255(70, 40, 20)), seed=70))
     rug = b.mat("rug", Material(
         (rgb255(120, 30, 40), rgb255(200, 120, 80)), scale=0.3, octaves=5, contrast=1.8,
         grid=(0.25, 0.03, 0.6), spot_color=rgb255(30, 40, 90), spot_frac=0.2, spot_scale=0.15,
@@ -463,7 +465,7 @@ def make_tabletop(seed: int) -> SimScene:
     _plant(b, seed, base)
     return SimScene(
         "tabletop", seed, b.parts, b.materials,
-        Lighting(direction=(0.45, 0.2, 1.0), ambient=0.52, diffuse=0.55, shadow=0.5),
+        Lighting(direction=(0.45, 0.2, 1.0), ambient=0.5, diffuse=0.52, shadow=0.5),
         support_z=top_z,
         camera_bounds=(np.array([-X + 0.2, -Y + 0.2, 0.3]), np.array([X - 0.2, Y - 0.2,
                                                                       Z - 0.2])),
@@ -696,7 +698,7 @@ def make_toycar(seed: int) -> SimScene:
             b.add("mug", cylinder(c, c + [0, 0, 0.09], 0.036, 20), m)
     return SimScene(
         "toycar", seed, b.parts, b.materials,
-        Lighting(direction=(-0.3, -0.4, 1.0), ambient=0.52, diffuse=0.55, shadow=0.5),
+        Lighting(direction=(-0.3, -0.4, 1.0), ambient=0.5, diffuse=0.52, shadow=0.5),
         support_z=top_z,
         camera_bounds=(np.array([-X + 0.2, -Y + 0.2, 0.3]), np.array([X - 0.2, Y - 0.2,
                                                                       Z - 0.2])),
