@@ -1,0 +1,261 @@
+"""Shared machinery of the ROS 2 nodes: parameters from config dataclasses, QoS, diagnostics,
+throttled warnings and exception-safe callbacks.
+
+Nodes stay thin: they convert messages (``ooi_seg_ros.msgconv``), call the ROS-free core and
+convert back. Everything here is about being a well-behaved node next to a drone stack.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import threading
+import time
+import typing
+from typing import Any, Callable, Optional
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+
+
+def sensor_qos(depth: int = 5) -> QoSProfile:
+    """Best-effort, volatile, shallow: camera streams (REP 2003 sensor data)."""
+    q = QoSProfile(**{k: getattr(qos_profile_sensor_data, k)
+                      for k in ("reliability", "durability", "history")}, depth=depth)
+    return q
+
+
+def latched_qos(depth: int = 1) -> QoSProfile:
+    """Reliable + transient-local: results a late subscriber must still receive."""
+    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                      history=HistoryPolicy.KEEP_LAST)
+
+
+def reliable_qos(depth: int = 10) -> QoSProfile:
+    """Reliable, volatile: per-keyframe results (keyframes, masks)."""
+    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+
+
+@dataclasses.dataclass
+class ParamSpec:
+    """Description and valid range of one ROS parameter."""
+
+    description: str
+    min: Optional[float] = None
+    max: Optional[float] = None
+    choices: Optional[tuple] = None
+    read_only: bool = False
+
+
+def _field_doc(cls: type) -> dict[str, str]:
+    """Per-field documentation: the dataclass field's ``metadata['doc']`` if present."""
+    return {f.name: f.metadata.get("doc", "") for f in dataclasses.fields(cls)}
+
+
+class ConfigParams:
+    """Declares one ROS parameter per scalar field of a config dataclass and validates updates.
+
+    ``prefix`` namespaces the parameters (``seg.floor.ransac_iterations``). Nested dataclasses
+    recurse. Values are validated on set (type, range, choices) and the on-set callback rejects
+    bad ones with a reason, as REP 2004-style nodes should.
+    """
+
+    def __init__(self, node: Node, config: Any, prefix: str = "",
+                 specs: Optional[dict[str, ParamSpec]] = None) -> None:
+        self.node = node
+        self.config = config
+        self.specs = specs or {}
+        self._names: dict[str, tuple[Any, str]] = {}  # param name -> (owner obj, field)
+        self._declare(config, prefix)
+        node.add_on_set_parameters_callback(self._on_set)
+
+    def _declare(self, obj: Any, prefix: str) -> None:
+        hints = typing.get_type_hints(type(obj))
+        docs = _field_doc(type(obj))
+        for f in dataclasses.fields(obj):
+            name = f"{prefix}{f.name}"
+            val = getattr(obj, f.name)
+            if dataclasses.is_dataclass(val):
+                self._declare(val, name + ".")
+                continue
+            if not isinstance(val, (bool, int, float, str)):
+                continue  # lists/arrays are not exposed as parameters
+            spec = self.specs.get(name)
+            desc = ParameterDescriptor(description=(spec.description if spec else docs[f.name])
+                                       or f"{type(obj).__name__}.{f.name}",
+                                       read_only=bool(spec and spec.read_only))
+            if spec and (spec.min is not None or spec.max is not None):
+                lo = spec.min if spec.min is not None else -1e308
+                hi = spec.max if spec.max is not None else 1e308
+                if isinstance(val, bool):
+                    pass
+                elif isinstance(val, int) and hints.get(f.name) is int:
+                    desc.integer_range = [IntegerRange(from_value=int(max(lo, -2**62)),
+                                                       to_value=int(min(hi, 2**62)), step=0)]
+                else:
+                    desc.floating_point_range = [FloatingPointRange(from_value=float(lo),
+                                                                    to_value=float(hi), step=0.0)]
+            if spec and spec.choices:
+                desc.additional_constraints = "one of: " + ", ".join(map(str, spec.choices))
+            if hints.get(f.name) is float and isinstance(val, int):
+                val = float(val)
+            param = self.node.declare_parameter(name, val, desc)
+            ok, reason = self._check(name, param.value, val)
+            if not ok:
+                raise ValueError(f"parameter {name}: {reason}")
+            setattr(obj, f.name, param.value)
+            self._names[name] = (obj, f.name)
+
+    def _check(self, name: str, value: Any, current: Any) -> tuple[bool, str]:
+        spec = self.specs.get(name)
+        if isinstance(current, bool) != isinstance(value, bool):
+            return False, f"expected a bool, got {value!r}"
+        if isinstance(current, (int, float)) and not isinstance(current, bool):
+            if not isinstance(value, (int, float)) or value != value:  # NaN check
+                return False, f"expected a number, got {value!r}"
+            if spec and spec.min is not None and value < spec.min:
+                return False, f"{value} is below the minimum {spec.min}"
+            if spec and spec.max is not None and value > spec.max:
+                return False, f"{value} is above the maximum {spec.max}"
+        if spec and spec.choices and value not in spec.choices:
+            return False, f"{value!r} is not one of {list(spec.choices)}"
+        return True, ""
+
+    def _on_set(self, params: list) -> SetParametersResult:
+        for p in params:
+            if p.name not in self._names:
+                continue
+            obj, field = self._names[p.name]
+            ok, reason = self._check(p.name, p.value, getattr(obj, field))
+            if not ok:
+                return SetParametersResult(successful=False, reason=f"{p.name}: {reason}")
+        for p in params:
+            if p.name in self._names:
+                obj, field = self._names[p.name]
+                setattr(obj, field, p.value)
+        return SetParametersResult(successful=True)
+
+
+class Diagnostics:
+    """Counters, timings and a state line published as ``diagnostics`` (DiagnosticArray)."""
+
+    def __init__(self, node: Node, period_s: float = 1.0) -> None:
+        self.node = node
+        self.state = "starting"
+        self.level = DiagnosticStatus.OK
+        self.counters: dict[str, int] = {}
+        self.timings: dict[str, float] = {}
+        self.values: dict[str, str] = {}
+        self._lock = threading.Lock()
+        self._pub = node.create_publisher(DiagnosticArray, "diagnostics", 10)
+        self._timer = node.create_timer(period_s, self.publish)
+
+    def count(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self.counters[key] = self.counters.get(key, 0) + n
+
+    def timing(self, key: str, seconds: float) -> None:
+        with self._lock:
+            self.timings[key] = seconds
+
+    def set(self, key: str, value: Any) -> None:
+        with self._lock:
+            self.values[key] = str(value)
+
+    def set_state(self, state: str, level: int = DiagnosticStatus.OK) -> None:
+        with self._lock:
+            self.state, self.level = state, level
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            return {"state": self.state, "counters": dict(self.counters),
+                    "timings": dict(self.timings), "values": dict(self.values)}
+
+    def publish(self) -> None:
+        with self._lock:
+            kv = [KeyValue(key=k, value=str(v)) for k, v in sorted(self.counters.items())]
+            kv += [KeyValue(key=f"time_{k}_s", value=f"{v:.3f}")
+                   for k, v in sorted(self.timings.items())]
+            kv += [KeyValue(key=k, value=v) for k, v in sorted(self.values.items())]
+            level = self.level
+            bad = any(k.startswith(("dropped", "error")) for k, v in self.counters.items() if v)
+            if level == DiagnosticStatus.OK and bad:
+                level = DiagnosticStatus.WARN
+            st = DiagnosticStatus(level=level, name=self.node.get_fully_qualified_name(),
+                                  message=self.state, hardware_id="ooi_seg_ros", values=kv)
+        msg = DiagnosticArray(status=[st])
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        self._pub.publish(msg)
+
+
+class Throttle:
+    """Logs a warning per key at most once per ``period_s`` (with the count it stood for)."""
+
+    def __init__(self, node: Node, period_s: float = 5.0) -> None:
+        self.node = node
+        self.period_s = period_s
+        self._last: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+
+    def warn(self, key: str, message: str) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, -1e9) >= self.period_s:
+            n = self._suppressed.pop(key, 0)
+            extra = f" ({n} more like this suppressed)" if n else ""
+            self.node.get_logger().warning(message + extra)
+            self._last[key] = now
+        else:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+
+
+def guarded(counter: str) -> Callable:
+    """Decorator for node callbacks: an exception is logged (throttled), counted, swallowed.
+
+    The node must have ``self.diag`` (Diagnostics) and ``self.throttle`` (Throttle).
+    """
+
+    def deco(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def wrapper(self, *args, **kwargs):
+            try:
+                return fn(self, *args, **kwargs)
+            except Exception as exc:  # noqa: BLE001 — callback boundary: never kill the node
+                self.diag.count(counter)
+                self.throttle.warn(counter, f"{fn.__name__}: dropped ({type(exc).__name__}: "
+                                            f"{exc})")
+                return None
+        return wrapper
+    return deco
+
+
+def run_node(node_factory: Callable[[], Node], args: Optional[list[str]] = None,
+             multithreaded: bool = True) -> None:
+    """Jazzy-style main(): init, spin, clean shutdown on Ctrl-C or external shutdown."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_factory()
+        if multithreaded:
+            from rclpy.executors import MultiThreadedExecutor
+            ex = MultiThreadedExecutor(num_threads=2)
+            ex.add_node(node)
+            ex.spin()
+        else:
+            rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
