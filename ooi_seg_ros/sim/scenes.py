@@ -422,7 +422,7 @@ def make_tabletop(seed: int) -> SimScene:
     _room(b, rng, X, Y, Z, rgb255(200, 196, 178))
     table = b.mat("table_wood", Material(
         (rgb255(96, 56, 28), rgb255(190, 128, 74)), scale=0.2, octaves=6, contrast=2.0,
-        grain=0.35, spot_color=rgb255(70, 40, 20), spot_frac=0.06, spot_scale=0.03,
+        grain=0.28, spot_color=rgb255(70, 40, 20), spot_frac=0.05, spot_scale=0.03,
         stripes=((1.0, 0.0, 0.0), 0.12, 0.04, rgb255(70, 40, 20)), seed=70))
     rug = b.mat("rug", Material(
         (rgb255(120, 30, 40), rgb255(200, 120, 80)), scale=0.3, octaves=5, contrast=1.8,
@@ -469,7 +469,7 @@ def make_tabletop(seed: int) -> SimScene:
         support_z=top_z,
         camera_bounds=(np.array([-X + 0.2, -Y + 0.2, 0.3]), np.array([X - 0.2, Y - 0.2,
                                                                       Z - 0.2])),
-        rings=(Ring(15.0, 3.1), Ring(35.0, 2.9), Ring(55.0, 2.7)), indoor=True,
+        rings=(Ring(15.0, 2.7), Ring(35.0, 2.5), Ring(55.0, 2.35)), indoor=True,
         description="potted plant on a wooden table in a furnished room (rug, chairs, "
                     "bookshelf, pictures, lamp)")
 
@@ -607,7 +607,7 @@ def make_bicycle(seed: int) -> SimScene:
                  clouds=0.5),
         support_z=0.0,
         camera_bounds=(np.array([-30.0, -30.0, 0.3]), np.array([30.0, 30.0, 30.0])),
-        rings=(Ring(15.0, 3.0), Ring(32.0, 2.8), Ring(50.0, 2.6)), indoor=False,
+        rings=(Ring(15.0, 2.5), Ring(32.0, 2.35), Ring(50.0, 2.2)), indoor=False,
         description="bicycle with spoked wheels on a lawn with a path, bushes, trees, rocks, "
                     "a bench and a fence")
 
