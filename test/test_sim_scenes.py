@@ -141,3 +141,29 @@ def test_supersampling_changes_edges_only():
     assert np.mean(a.mask != b.mask) < 0.05
     diff = np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max(2)
     assert np.median(diff) <= 3  # interiors are textured the same way
+
+
+def test_lens_distortion_is_rendered():
+    """With plumb_bob distortion, GT points land in the mask at their *distorted* pixels."""
+    from ooi_seg_ros.sim.render import distort_normalized, undistort_normalized
+
+    sim = simulate_capture("toycar", n_views=2, width=128, height=96, seed=0,
+                           distortion=[-0.25, 0.08, 0.001, -0.001, 0.0])
+    cam = sim.capture.views[0].camera
+    assert cam.distortion_model == "plumb_bob" and cam.dist[0] == -0.25
+    x = np.linspace(-0.6, 0.6, 7)
+    xu, yu = undistort_normalized(*distort_normalized(x, x[::-1], cam), cam)
+    np.testing.assert_allclose(xu, x, atol=1e-9)
+    np.testing.assert_allclose(yu, x[::-1], atol=1e-9)
+    pts = sim.capture.gt_ooi_points
+    for v, depth in zip(sim.capture.views, sim.depths):
+        R_cw, t_cw = v.pose.world_to_cam()
+        pc = pts @ R_cw.T + t_cw
+        z = pc[:, 2]
+        xd, yd = distort_normalized(pc[:, 0] / z, pc[:, 1] / z, cam)
+        px = np.round(np.stack([cam.fx * xd + cam.cx, cam.fy * yd + cam.cy], 1)).astype(int)
+        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < 128) & (px[:, 1] >= 0) & (px[:, 1] < 96)
+        px, z = px[ok], z[ok]
+        vis = np.abs(depth[px[:, 1], px[:, 0]] - z) < 0.01 * sim.scene.ooi_diagonal
+        assert vis.sum() > 50
+        assert v.gt_mask[px[vis, 1], px[vis, 0]].mean() > 0.85

@@ -42,6 +42,7 @@ class SimConfig:
     sensor_noise: float = 1.5  # std of Gaussian pixel noise, 0-255 units
     exposure_jitter: float = 0.03  # std of the per-frame exposure gain (auto exposure)
     gt_points: int = 20000  # points sampled on the OOI surface for evaluation
+    distortion: Optional[list[float]] = None  # plumb_bob [k1, k2, p1, p2, k3]; None = pinhole
 
 
 @dataclass
@@ -174,7 +175,10 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
     if not (5.0 <= cfg.hfov_deg <= 150.0):
         raise InputError(f"hfov_deg={cfg.hfov_deg} must be within 5..150 degrees")
     scene = make_scene(cfg.scene, cfg.seed)
-    cam = intrinsics_from_fov(cfg.width, cfg.height, cfg.hfov_deg)
+    try:
+        cam = intrinsics_from_fov(cfg.width, cfg.height, cfg.hfov_deg, cfg.distortion)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     poses = orbit_poses(scene, cfg.n_views, cfg.rings, cfg.seed, cfg.aim_jitter,
                         cfg.roll_jitter_deg)
     renderer = Renderer(scene)

@@ -9,7 +9,7 @@ same part) and the mask is their majority.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 import open3d as o3d
@@ -30,15 +30,26 @@ class RenderResult:
     depth: np.ndarray  # [H, W] float32 optical-axis depth (nearest sub-sample on edges), inf=sky
 
 
-def intrinsics_from_fov(width: int, height: int, hfov_deg: float) -> CameraIntrinsics:
+def intrinsics_from_fov(width: int, height: int, hfov_deg: float,
+                        distortion: Optional[Sequence[float]] = None) -> CameraIntrinsics:
     """Square-pixel pinhole intrinsics with horizontal field of view ``hfov_deg``.
 
     The principal point is the image centre in the ROS/OpenCV convention (pixel centres at
-    integer coordinates): cx = (W - 1) / 2.
+    integer coordinates): cx = (W - 1) / 2. ``distortion`` = plumb_bob (k1, k2, p1, p2, k3)
+    coefficients as in ROS CameraInfo (None or all zero: an ideal pinhole).
     """
     fx = (width / 2.0) / np.tan(np.radians(hfov_deg) / 2.0)
-    return CameraIntrinsics(int(width), int(height), float(fx), float(fx),
-                            (width - 1) / 2.0, (height - 1) / 2.0)
+    cam = CameraIntrinsics(int(width), int(height), float(fx), float(fx),
+                           (width - 1) / 2.0, (height - 1) / 2.0)
+    if distortion is not None and np.any(np.asarray(distortion, float) != 0):
+        d = np.zeros(5)
+        vals = np.asarray(distortion, float).reshape(-1)
+        if len(vals) > 5:
+            raise ValueError(f"distortion {list(vals)}: give at most 5 plumb_bob coefficients")
+        d[: len(vals)] = vals
+        cam.distortion_model = "plumb_bob"
+        cam.dist = d
+    return cam
 
 
 def camera_rays(cam: CameraIntrinsics, pose: Pose, ss: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -55,11 +66,55 @@ def camera_rays(cam: CameraIntrinsics, pose: Pose, ss: int = 1) -> tuple[np.ndar
     x = (u - cam.cx) / cam.fx
     y = (v - cam.cy) / cam.fy
     x, y = np.broadcast_arrays(x, y)
+    if cam.has_distortion:
+        x, y = undistort_normalized(x, y, cam)
     d = np.stack([x, y, np.ones_like(x)], -1)
     norm = np.linalg.norm(d, axis=-1)
     d = d / norm[..., None]
     zc = 1.0 / norm  # camera-z component of the unit ray
     return d @ pose.R.T, zc
+
+
+def _plumb_bob(dist: np.ndarray) -> tuple[float, float, float, float, float]:
+    k = np.zeros(5)
+    k[: min(len(dist), 5)] = np.asarray(dist, float)[:5]
+    return tuple(float(x) for x in k)  # k1, k2, p1, p2, k3
+
+
+def distort_normalized(x: np.ndarray, y: np.ndarray,
+                       cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the camera's plumb_bob distortion to normalized image coordinates."""
+    if not cam.has_distortion:
+        return x, y
+    if cam.distortion_model != "plumb_bob":
+        raise ValueError(f"the simulator renders only plumb_bob distortion, not "
+                         f"{cam.distortion_model!r}")
+    k1, k2, p1, p2, k3 = _plumb_bob(cam.dist)
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return xd, yd
+
+
+def undistort_normalized(xd: np.ndarray, yd: np.ndarray, cam: CameraIntrinsics,
+                         iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Invert ``distort_normalized`` by fixed-point iteration (as OpenCV does)."""
+    if not cam.has_distortion:
+        return xd, yd
+    if cam.distortion_model != "plumb_bob":
+        raise ValueError(f"the simulator renders only plumb_bob distortion, not "
+                         f"{cam.distortion_model!r}")
+    k1, k2, p1, p2, k3 = _plumb_bob(cam.dist)
+    x, y = xd.copy(), yd.copy()
+    for _ in range(iterations):
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        x = (xd - dx) / radial
+        y = (yd - dy) / radial
+    return x, y
 
 
 class Renderer:
