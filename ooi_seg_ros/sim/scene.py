@@ -153,8 +153,10 @@ class SimScene:
     @property
     def ooi_radius(self) -> float:
         """Radius of the sphere about ``ooi_center`` that holds the OOI."""
-        v = np.concatenate([p.vertices for p in self.ooi_parts()])
-        return float(np.linalg.norm(v - self.ooi_center, axis=1).max())
+        if "ooi_radius" not in self._cache:
+            v = np.concatenate([p.vertices for p in self.ooi_parts()])
+            self._cache["ooi_radius"] = float(np.linalg.norm(v - self.ooi_center, axis=1).max())
+        return self._cache["ooi_radius"]
 
     @property
     def scene_size(self) -> float:
