@@ -76,8 +76,8 @@ def _aircraft(b: _Builder, seed: int) -> None:
     """A business jet (~20 m) standing on its landing gear at z = 0, nose towards +x."""
     white = b.mat("paint_white", Material(
         (rgb255(166, 172, 180), rgb255(242, 242, 244)), scale=1.5, octaves=6, contrast=1.8,
-        spot_color=rgb255(128, 124, 116), spot_frac=0.1, spot_scale=0.8,
-        grid=(1.1, 0.035, 0.45), seed=1,
+        spot_color=rgb255(128, 124, 116), spot_frac=0.08, spot_scale=0.8,
+        grid=(1.1, 0.03, 0.3), seed=1,
         decals=(Decal((-10, -3, 1.95), (8.6, 3, 2.3), rgb255(24, 46, 110)),  # cheat line
                 Decal((-10, -3, 2.3), (8.6, 3, 2.4), rgb255(190, 30, 40)),
                 *[Decal((x, -3, 2.5), (x + 0.32, 3, 2.78), rgb255(30, 34, 44), 0.1)
@@ -86,8 +86,8 @@ def _aircraft(b: _Builder, seed: int) -> None:
                 Decal((-2.8, -3, 1.2), (-1.0, 3, 1.6), rgb255(60, 66, 80), 0.2))))
     wing = b.mat("paint_wing", Material(
         (rgb255(140, 146, 156), rgb255(225, 228, 232)), scale=1.2, octaves=6, contrast=1.8,
-        spot_color=rgb255(90, 92, 96), spot_frac=0.1, spot_scale=0.6,
-        grid=(0.9, 0.03, 0.4), seed=2,
+        spot_color=rgb255(100, 102, 106), spot_frac=0.08, spot_scale=0.6,
+        grid=(0.9, 0.03, 0.25), seed=2,
         decals=(Decal((-6, -9, 1.0), (0, -8.3, 3.0), rgb255(190, 30, 40)),
                 Decal((-6, 8.3, 1.0), (0, 9, 3.0), rgb255(190, 30, 40)))))
     tail = b.mat("paint_tail", Material(
@@ -164,7 +164,7 @@ def _hangar(b: _Builder, seed: int) -> None:
     floor = b.mat("hangar_floor", Material(
         (rgb255(104, 104, 100), rgb255(178, 176, 170)), scale=4.0, octaves=7, contrast=1.5,
         spot_color=rgb255(70, 68, 64), spot_frac=0.05, spot_scale=2.0, grain=0.12,
-        grid=(6.0, 0.08, 0.55), seed=10,
+        grid=(6.0, 0.12, 0.35), seed=10,
         decals=(Decal((-45, -0.12, -1), (45, 0.12, 0.01), rgb255(222, 180, 30)),  # taxi line
                 Decal((-14, -12.2, -1), (14, -11.9, 0.01), rgb255(230, 230, 225)),
                 Decal((-14, 11.9, -1), (14, 12.2, 0.01), rgb255(230, 230, 225)),
