@@ -137,6 +137,19 @@ def test_cli_list_and_bad_input(capsys):
     assert "unknown scene" in capsys.readouterr().err
     assert cli_main(["simulate", "--scene", "bicycle", "--out", "x", "--size", "10"]) == 1
     assert "WxH" in capsys.readouterr().err
+    assert cli_main(["simulate", "--scene", "bicycle", "--out", "x", "--rings", "15"]) == 1
+    assert "ELEV:DIST" in capsys.readouterr().err
+    assert cli_main(["simulate", "--scene", "bicycle", "--out", "x", "--distortion", "a"]) == 1
+    assert "--distortion" in capsys.readouterr().err
+
+
+def test_cli_parsers():
+    from ooi_seg_ros.cli.simulate import parse_distortion, parse_rings, parse_size
+
+    assert parse_size("320X240") == (320, 240)
+    assert parse_rings("15:2.5,35:2.3") == [[15.0, 2.5], [35.0, 2.3]]
+    assert parse_rings(None) is None
+    assert parse_distortion("-0.1,0.02") == [-0.1, 0.02]
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ooi_seg_ros.capture_io") is None,

@@ -24,6 +24,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="horizontal field of view in degrees (default 60)")
     p.add_argument("--supersample", type=int, default=2,
                    help="anti-aliasing sub-samples per pixel side (default 2; 1 = off)")
+    p.add_argument("--rings", default=None,
+                   help="orbit rings as ELEV:DIST,... (elevation in degrees, distance in OOI "
+                        "radii), e.g. 15:2.5,35:2.3; default: the scene's own rings")
+    p.add_argument("--distortion", default=None,
+                   help="plumb_bob lens distortion k1,k2[,p1,p2,k3] (default: ideal pinhole)")
     p.add_argument("--list", action="store_true", help="print the scene names and exit")
     p.set_defaults(func=run)
 
@@ -37,6 +42,36 @@ def parse_size(text: str) -> tuple[int, int]:
     if w < 8 or h < 8 or w > 8192 or h > 8192:
         raise InputError(f"--size {text!r}: width and height must be within 8..8192")
     return w, h
+
+
+def parse_rings(text: str | None) -> list[list[float]] | None:
+    """``"15:2.5,35:2.3"`` -> [[15.0, 2.5], [35.0, 2.3]]; None stays None."""
+    if text is None:
+        return None
+    rings = []
+    for item in text.split(","):
+        try:
+            e, d = (float(x) for x in item.split(":"))
+        except ValueError:
+            raise InputError(f"--rings item {item!r} is not ELEV:DIST (e.g. --rings "
+                             "15:2.5,35:2.3)") from None
+        rings.append([e, d])
+    return rings
+
+
+def parse_distortion(text: str | None) -> list[float] | None:
+    """``"-0.1,0.02"`` -> [-0.1, 0.02] (plumb_bob k1, k2[, p1, p2, k3])."""
+    if text is None:
+        return None
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise InputError(f"--distortion {text!r} is not a comma-separated list of numbers "
+                         "(e.g. --distortion -0.1,0.02)") from None
+    if not 1 <= len(vals) <= 5:
+        raise InputError(f"--distortion {text!r}: give 1 to 5 plumb_bob coefficients "
+                         "k1,k2,p1,p2,k3")
+    return vals
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
     if args.supersample < 1 or args.supersample > 4:
         raise InputError(f"--supersample {args.supersample}: use 1..4")
     w, h = parse_size(args.size)
+    rings = parse_rings(args.rings)
+    distortion = parse_distortion(args.distortion)
     try:
         capture_io = importlib.import_module("ooi_seg_ros.capture_io")
     except ModuleNotFoundError as exc:
@@ -64,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
                          "update the package") from None
     t0 = time.monotonic()
     sim = simulate_capture(args.scene, n_views=args.views, width=w, height=h, seed=args.seed,
-                           hfov_deg=args.fov, supersample=args.supersample)
+                           rings=rings, hfov_deg=args.fov, supersample=args.supersample,
+                           distortion=distortion)
     t1 = time.monotonic()
     capture_io.write_capture(sim.capture, args.out)
     cov = [float(v.gt_mask.mean()) for v in sim.capture.views]
