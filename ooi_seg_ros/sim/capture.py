@@ -72,9 +72,10 @@ def make_scene(name: str, seed: int = 0) -> SimScene:
     return _cached_scene(name, int(seed))
 
 
-def _rings(scene: SimScene, rings: Optional[Sequence]) -> list[Ring]:
+def _rings(scene: Optional[SimScene], rings: Optional[Sequence]) -> list[Ring]:
+    """Validated rings: ``rings`` as given, or the scene's defaults when None."""
     if rings is None:
-        return list(scene.rings)
+        return list(scene.rings) if scene is not None else []
     out = []
     for r in rings:
         if isinstance(r, Ring):
@@ -82,6 +83,8 @@ def _rings(scene: SimScene, rings: Optional[Sequence]) -> list[Ring]:
             continue
         try:
             e, d = (float(x) for x in r)
+            if not (np.isfinite(e) and np.isfinite(d)):
+                raise ValueError
         except (TypeError, ValueError):
             raise InputError(f"ring {r!r} is not (elevation_deg, distance_factor)") from None
         if not (-10.0 < e < 90.0) or d <= 0:
@@ -163,9 +166,10 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
     """
     if config is None:
         try:
+            ring_list = None if rings is None else [
+                [float(r.elevation_deg), float(r.distance)] for r in _rings(None, rings)]
             config = SimConfig(scene=scene_name, n_views=n_views, width=width, height=height,
-                               seed=seed, rings=None if rings is None else
-                               [list(map(float, r)) for r in rings], **options)
+                               seed=seed, rings=ring_list, **options)
         except TypeError as exc:
             raise InputError(f"bad simulate option: {exc}") from None
     cfg = config
