@@ -135,6 +135,7 @@ class Renderer:
         L = np.asarray(scene.lighting.direction, np.float32)
         self.L = L / np.linalg.norm(L)
         self.eps = 1e-4 * max(scene.ooi_diagonal, 1e-3)
+        self._ray_cache: dict = {}
 
     def render(self, cam: CameraIntrinsics, pose: Pose, supersample: int = 2,
                rng: Optional[np.random.Generator] = None, sensor_noise: float = 1.5,
@@ -147,8 +148,13 @@ class Renderer:
         ss = max(int(supersample), 1)
         S = ss * ss
         H, W = cam.height, cam.width
-        d, zc = camera_rays(cam, pose, ss)
-        d = d.reshape(-1, 3).astype(np.float32)  # [H*W*S, 3], pixel-major
+        key = (W, H, cam.fx, cam.fy, cam.cx, cam.cy, cam.distortion_model,
+               tuple(np.asarray(cam.dist, float).tolist()), ss)
+        if key not in self._ray_cache:  # camera-frame rays are the same for every pose
+            dc, zc = camera_rays(cam, Pose.identity(), ss)
+            self._ray_cache = {key: (dc.reshape(-1, 3).astype(np.float32), zc.reshape(-1))}
+        dc, zc = self._ray_cache[key]
+        d = dc @ np.asarray(pose.R, np.float32).T  # [H*W*S, 3], pixel-major
         o = np.broadcast_to(np.asarray(pose.t, np.float32), d.shape)
         rays = np.ascontiguousarray(np.concatenate([o, d], 1))
         ans = self.rs.cast_rays(o3d.core.Tensor(rays))
@@ -203,7 +209,7 @@ class Renderer:
         img[ii] = col[len(ci):].reshape(-1, S, 3).mean(1)
         img = img.reshape(H, W, 3)
         mask = mask.reshape(H, W)
-        depth_s = np.where(hit, t * zc.reshape(-1), np.inf).reshape(-1, S)
+        depth_s = np.where(hit, t * zc, np.inf).reshape(-1, S)
         depth = np.where(coherent, depth_s.mean(1), depth_s.min(1)).reshape(H, W)
         depth = depth.astype(np.float32)
         img = img * (exposure * 255.0)
