@@ -3,7 +3,7 @@
 Per sample: first hit -> triangle -> material texture of the world-space hit point x light
 (hemisphere ambient + Lambert with a cast shadow), sky for misses. With supersampling the
 colour is the mean of the sub-samples (adaptive: textured once where all sub-samples see the
-same part) and the mask is their majority.
+same part) and the mask holds the pixels where at least half of the sub-samples hit the OOI.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ class RenderResult:
     """One rendered view."""
 
     rgb: np.ndarray  # [H, W, 3] uint8
-    mask: np.ndarray  # [H, W] bool, True where the first hit is the OOI (majority)
+    mask: np.ndarray  # [H, W] bool, first hit is the OOI in >= half of the sub-samples
     depth: np.ndarray  # [H, W] float32 optical-axis depth (nearest sub-sample on edges), inf=sky
 
 
