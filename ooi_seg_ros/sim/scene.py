@@ -183,8 +183,8 @@ class SimScene:
         """``n`` points [n, 3] uniformly on the OOI's outer surface.
 
         Area-weighted samples over the OOI triangles; samples that fall inside another OOI
-        part (where parts overlap, e.g. a strut inside the fuselage) are not on the visible
-        surface and are drawn again.
+        part (where parts overlap, e.g. a strut inside the fuselage) or on a face resting on
+        the support (a pot's bottom) are not on the visible surface and are drawn again.
         """
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x0015]))
         parts = self.ooi_parts()
@@ -213,6 +213,8 @@ class SimScene:
             P = np.concatenate(pts)
             own = np.concatenate(owner)
             keep = ~self._inside_other_part(P, own, parts)
+            # faces lying flat on the support (a pot's bottom) can never be seen
+            keep &= np.abs(P[:, 2] - self.support_z) > 1e-7 * max(self.ooi_diagonal, 1e-3)
             out.append(P[keep])
             have += int(keep.sum())
             if have >= n:
