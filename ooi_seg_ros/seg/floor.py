@@ -1,0 +1,135 @@
+"""Stage 4.2: floor / support-plane removal.
+
+``mode="paper"`` follows section 4.2: RANSAC plane fits at ``n_thresholds`` distance
+thresholds; the inlier ratio as a function of the threshold is differentiated twice and the
+threshold at the minimum of the second derivative is taken (the knee where the ratio stops
+rising steeply). Orientation analysis: points are split by the plane's side; the inliers and
+the side holding fewer points are removed. Thresholds are derived from the cloud's spacing
+(median k-NN distance), never metres.
+
+``mode="support"`` (the improved default) is stable against the threshold jumps FINDINGS.md
+measured: several planes are extracted one after another at a fixed threshold of a few
+spacings; the support plane is the one whose normal, oriented towards the cameras, agrees with
+the cameras' mean "up" direction, that has the cameras' convergence point (the object) on the
+cameras' side, and lies nearest below it. Its inliers within a band derived from the inlier
+residuals, and everything on the far side, are removed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .density import spacing
+
+
+@dataclass
+class FloorConfig:
+    """Options of the floor/support-plane stage."""
+
+    mode: str = "paper"  # "paper" (threshold sweep) | "support" (camera-aware) | "none"
+    n_thresholds: int = 50  # thresholds swept by the paper rule
+    threshold_min: float = 0.25  # smallest swept threshold, in cloud spacings
+    threshold_max: float = 25.0  # largest swept threshold, in cloud spacings
+    sweep_sample: int = 30000  # points used for the threshold sweep (full cloud for the cut)
+    ransac_iterations: int = 1000  # RANSAC iterations per fit
+    support_threshold: float = 1.5  # support mode: plane inlier threshold in cloud spacings
+    support_max_planes: int = 6  # support mode: planes extracted one after another
+    support_min_inliers: float = 0.03  # support mode: smallest plane, fraction of the cloud
+    support_min_up: float = 0.7  # support mode: min cos(normal, mean camera up)
+    band_sigmas: float = 2.5  # support mode: removal band = this x inlier residual std
+    seed: int = 0  # RANSAC seed
+
+
+def _fit_plane(xyz: np.ndarray, thr: float, iters: int, seed: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Plane (a,b,c,d) with unit normal and inlier indices via open3d RANSAC."""
+    import open3d as o3d
+    o3d.utility.random.seed(int(seed))
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    model, inl = pc.segment_plane(distance_threshold=float(thr), ransac_n=3,
+                                  num_iterations=int(iters))
+    m = np.asarray(model, float)
+    m /= np.linalg.norm(m[:3])
+    return m, np.asarray(inl, np.int64)
+
+
+def paper_floor(xyz: np.ndarray, cfg: FloorConfig) -> tuple[np.ndarray, dict]:
+    """Indices kept by the paper's rule and the parameters used."""
+    n = len(xyz)
+    s = spacing(xyz, seed=cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    sample = xyz if n <= cfg.sweep_sample else xyz[rng.choice(n, cfg.sweep_sample, False)]
+    thrs = s * np.geomspace(cfg.threshold_min, cfg.threshold_max, cfg.n_thresholds)
+    ratio = np.array([len(_fit_plane(sample, t, cfg.ransac_iterations, cfg.seed)[1]) / len(sample)
+                      for t in thrs])
+    d2 = np.gradient(np.gradient(ratio, thrs), thrs)
+    k = int(np.argmin(d2[1:-1]) + 1) if len(d2) > 2 else 0
+    thr = float(thrs[k])
+    plane, inl = _fit_plane(xyz, thr, cfg.ransac_iterations, cfg.seed)
+    sd = xyz @ plane[:3] + plane[3]
+    out = np.zeros(n, bool)
+    out[inl] = True
+    rest = ~out
+    pos, neg = int((sd[rest] > 0).sum()), int((sd[rest] < 0).sum())
+    out |= (sd < 0) if pos >= neg else (sd > 0)
+    return np.nonzero(~out)[0], {"threshold": thr, "threshold_spacings": thr / s,
+                                 "plane": plane.tolist(), "inlier_ratio_curve":
+                                 [float(r) for r in ratio]}
+
+
+def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
+                  cam_up: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Indices kept after removing the camera-aware support plane (see module doc)."""
+    n = len(xyz)
+    s = spacing(xyz, seed=cfg.seed)
+    thr = cfg.support_threshold * s
+    up = cam_up / max(np.linalg.norm(cam_up), 1e-12)
+    remaining = np.arange(n)
+    best: Optional[tuple[float, np.ndarray, float]] = None
+    tried = []
+    for j in range(cfg.support_max_planes):
+        if len(remaining) < max(10, cfg.support_min_inliers * n):
+            break
+        plane, inl = _fit_plane(xyz[remaining], thr, cfg.ransac_iterations, cfg.seed + j)
+        if len(inl) < cfg.support_min_inliers * n:
+            break
+        side = np.sign(np.median(cam_centers @ plane[:3] + plane[3]))
+        plane = plane * (side if side != 0 else 1.0)  # normal points to the cameras
+        h_target = float(target @ plane[:3] + plane[3])
+        cam_frac = float(np.mean(cam_centers @ plane[:3] + plane[3] > 0))
+        cos_up = float(plane[:3] @ up)
+        tried.append({"plane": plane.tolist(), "inliers": int(len(inl)), "cos_up": cos_up,
+                      "target_height": h_target, "cameras_above": cam_frac})
+        if cos_up >= cfg.support_min_up and h_target > 0 and cam_frac >= 0.9:
+            res = xyz[remaining[inl]] @ plane[:3] + plane[3]
+            if best is None or h_target < best[0]:
+                best = (h_target, plane, float(np.std(res)))
+        remaining = np.delete(remaining, inl)
+    if best is None:
+        return np.arange(n), {"support_plane": None, "planes_tried": tried,
+                              "warning": "no support plane below the object with the cameras "
+                                         "above it; floor stage kept every point"}
+    _, plane, res_std = best
+    band = max(cfg.band_sigmas * res_std, 0.5 * thr)
+    sd = xyz @ plane[:3] + plane[3]
+    keep = sd > band
+    return np.nonzero(keep)[0], {"support_plane": plane.tolist(), "band": band,
+                                 "threshold": thr, "planes_tried": tried}
+
+
+def floor_filter(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
+                 cam_up: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Dispatch on ``cfg.mode``; returns kept indices and parameters used."""
+    if cfg.mode == "none" or len(xyz) < 10:
+        return np.arange(len(xyz)), {"mode": "none"}
+    if cfg.mode == "paper":
+        keep, p = paper_floor(xyz, cfg)
+    elif cfg.mode == "support":
+        keep, p = support_floor(xyz, cfg, cam_centers, cam_up, target)
+    else:
+        raise ValueError(f"floor.mode={cfg.mode!r}; use paper, support or none")
+    p["mode"] = cfg.mode
+    return keep, p
