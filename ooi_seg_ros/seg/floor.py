@@ -11,7 +11,7 @@ the side holding fewer points are removed. Thresholds are derived from the cloud
 measured: several planes are extracted one after another at a fixed threshold of a few
 spacings; the support plane is the one whose normal, oriented towards the cameras, agrees with
 the cameras' mean "up" direction, that has the cameras' convergence point (the object) on the
-cameras' side, and lies nearest below it. Its inliers within a band derived from the inlier
+cameras' side, and holds the most points (after a least-squares refit of its inliers). Its inliers within a band derived from the inlier
 residuals, and everything on the far side, are removed.
 """
 
@@ -35,7 +35,8 @@ class FloorConfig:
     threshold_max: float = 25.0  # largest swept threshold, in cloud spacings
     sweep_sample: int = 30000  # points used for the threshold sweep (full cloud for the cut)
     ransac_iterations: int = 1000  # RANSAC iterations per fit
-    support_threshold: float = 1.5  # support mode: plane inlier threshold in cloud spacings
+    support_threshold: float = 2.0  # support mode: inlier threshold in nearest-neighbour spacings
+    support_k: int = 1  # support mode: neighbour rank of the spacing used for the threshold
     support_max_planes: int = 6  # support mode: planes extracted one after another
     support_min_inliers: float = 0.03  # support mode: smallest plane, fraction of the cloud
     support_min_up: float = 0.7  # support mode: min cos(normal, mean camera up)
@@ -54,6 +55,14 @@ def _fit_plane(xyz: np.ndarray, thr: float, iters: int, seed: int
     m = np.asarray(model, float)
     m /= np.linalg.norm(m[:3])
     return m, np.asarray(inl, np.int64)
+
+
+def _refit(pts: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """Least-squares plane through ``pts`` (normal sign kept as in ``plane``)."""
+    c = pts.mean(axis=0)
+    n = np.linalg.svd(pts - c, full_matrices=False)[2][-1]
+    n = n if n @ plane[:3] >= 0 else -n
+    return np.append(n, -n @ c)
 
 
 def paper_floor(xyz: np.ndarray, cfg: FloorConfig) -> tuple[np.ndarray, dict]:
@@ -84,7 +93,7 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
                   cam_up: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, dict]:
     """Indices kept after removing the camera-aware support plane (see module doc)."""
     n = len(xyz)
-    s = spacing(xyz, seed=cfg.seed)
+    s = spacing(xyz, cfg.support_k, seed=cfg.seed)
     thr = cfg.support_threshold * s
     up = cam_up / max(np.linalg.norm(cam_up), 1e-12)
     remaining = np.arange(n)
@@ -96,6 +105,8 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
         plane, inl = _fit_plane(xyz[remaining], thr, cfg.ransac_iterations, cfg.seed + j)
         if len(inl) < cfg.support_min_inliers * n:
             break
+        plane = _refit(xyz[remaining[inl]], plane)
+        inl = np.nonzero(np.abs(xyz[remaining] @ plane[:3] + plane[3]) < thr)[0]
         side = np.sign(np.median(cam_centers @ plane[:3] + plane[3]))
         plane = plane * (side if side != 0 else 1.0)  # normal points to the cameras
         h_target = float(target @ plane[:3] + plane[3])
@@ -105,8 +116,8 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
                       "target_height": h_target, "cameras_above": cam_frac})
         if cos_up >= cfg.support_min_up and h_target > 0 and cam_frac >= 0.9:
             res = xyz[remaining[inl]] @ plane[:3] + plane[3]
-            if best is None or h_target < best[0]:
-                best = (h_target, plane, float(np.std(res)))
+            if best is None or len(inl) > best[0]:
+                best = (len(inl), plane, float(np.std(res)))
         remaining = np.delete(remaining, inl)
     if best is None:
         return np.arange(n), {"support_plane": None, "planes_tried": tried,

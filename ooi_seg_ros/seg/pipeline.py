@@ -25,6 +25,7 @@ from .masks import MaskConfig, render_masks
 from .mesh import MeshConfig, build_mesh
 from .metrics import scene_metrics
 from .noise import NoiseConfig, noise_filter
+from .refine import RefineConfig, refine_masks
 from .roi import RoiConfig, frame_radius, roi_filter
 
 METHODS = ("paper", "ours")
@@ -43,6 +44,7 @@ class SegmentationConfig:
     noise: NoiseConfig = field(default_factory=NoiseConfig)  # 4.3 noise removal
     mesh: MeshConfig = field(default_factory=MeshConfig)  # 4.4 meshing
     masks: MaskConfig = field(default_factory=MaskConfig)  # 4.5 masks
+    refine: RefineConfig = field(default_factory=RefineConfig)  # per-view GrabCut refinement
 
 
 def preset(method: str) -> dict:
@@ -53,14 +55,16 @@ def preset(method: str) -> dict:
                 "floor": {"mode": "paper"}, "noise": {"method": "dbscan", "select": "largest"},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "mesh", "closing_kernel": 5, "fill_holes": False,
-                          "hull_consistency": False}}
+                          "hull_consistency": False},
+                "refine": {"enabled": False}}
     if method == "ours":
         return {"method": "ours", "roi": {"enabled": True},
-                "density": {"drop_fraction": 0.1, "first_peak": False},
+                "density": {"drop_fraction": 0.05, "first_peak": False},
                 "floor": {"mode": "support"}, "noise": {"method": "dbscan", "select": "central"},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
-                          "hull_consistency": True}}
+                          "splat_scale": 0.6, "hull_consistency": False},
+                "refine": {"enabled": True}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 
@@ -134,16 +138,20 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
     radius = frame_radius(views, target)
     params["orbit"] = {"convergence_point": target.tolist(), "frame_radius": radius}
     stage_clouds["input"] = cloud.xyz
+    full = cloud
+    sel = np.arange(len(cloud))
 
     def run(name: str, fn) -> None:
-        nonlocal cloud
+        nonlocal cloud, sel
         t0 = time.perf_counter()
         keep, p = fn(cloud.xyz)
         timings[name] = time.perf_counter() - t0
         params[name] = p
         if "warning" in p:
             warnings.append(f"{name}: {p['warning']}")
-        cloud = cloud.subset(np.asarray(keep, np.int64))
+        keep = np.asarray(keep, np.int64)
+        sel = sel[keep]
+        cloud = cloud.subset(keep)
         counts[name] = int(len(cloud))
         stage_clouds[name] = cloud.xyz
         if len(cloud) < 4:
@@ -173,6 +181,17 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
     t0 = time.perf_counter()
     masks, params["masks"] = render_masks(views, cfg.masks, mesh, cloud.xyz)
     timings["masks"] = time.perf_counter() - t0
+    if cfg.refine.enabled:
+        t0 = time.perf_counter()
+        removed = np.ones(len(full), bool)
+        removed[sel] = False
+        try:
+            masks, params["refine"] = refine_masks(masks, views, cloud, full.subset(removed),
+                                                   cfg.refine)
+        except ImportError:
+            warnings.append("refine: opencv-python-headless is not installed; masks are the "
+                            "unrefined point silhouettes")
+        timings["refine"] = time.perf_counter() - t0
     cover = np.array([m.mean() for m in masks.values()])
     n_empty = int((cover == 0).sum())
     if n_empty:

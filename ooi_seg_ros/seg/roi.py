@@ -22,18 +22,18 @@ class RoiConfig:
     """Options of the camera-framing region of interest."""
 
     enabled: bool = True  # False keeps every point
-    min_in_frame: float = 0.8  # keep points inside the frame of at least this share of views
+    min_in_frame: float = 0.5  # keep points inside the frame of at least this share of views
     radius_scale: float = 1.0  # keep points within this x the frame half-extent at the object
     max_views: int = 120  # views sampled for the in-frame test (evenly spaced)
 
 
 def frame_radius(views: list[View], target: np.ndarray) -> float:
-    """Median half-extent of the image (short side) at the target's distance, in world units."""
+    """Median half-diagonal of the image at the target's distance, in world units."""
     r = []
     for v in views:
         c = v.camera
         d = float(np.linalg.norm(v.pose.t - target))
-        r.append(d * min(c.width / (2 * c.fx), c.height / (2 * c.fy)))
+        r.append(d * float(np.hypot(c.width / (2 * c.fx), c.height / (2 * c.fy))))
     return float(np.median(r)) if r else 0.0
 
 
