@@ -11,8 +11,9 @@ the side holding fewer points are removed. Thresholds are derived from the cloud
 measured: several planes are extracted one after another at a fixed threshold of a few
 spacings; the support plane is the one whose normal, oriented towards the cameras, agrees with
 the cameras' mean "up" direction, that has the cameras' convergence point (the object) on the
-cameras' side, and holds the most points (after a least-squares refit of its inliers). Its inliers within a band derived from the inlier
-residuals, and everything on the far side, are removed.
+cameras' side, and holds the most points (after a least-squares refit of its inliers). Its
+inliers within a band derived from the inlier residuals, and everything on the far side, are
+removed.
 """
 
 from __future__ import annotations
