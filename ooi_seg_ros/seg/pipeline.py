@@ -104,7 +104,7 @@ class SegmentationResult:
     warnings: list  # human-readable warnings
     config: SegmentationConfig
     metrics: Optional[dict] = None  # scene_metrics vs view.gt_mask when present
-    stage_clouds: dict = field(default_factory=dict)  # {stage: [N,3]} for the report
+    stage_clouds: dict = field(default_factory=dict)  # {stage: ([N,3], [N,3] rgb)} (report)
 
 
 def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConfig] = None
@@ -137,7 +137,7 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
     cam_up = -np.mean([p.R[:, 1] for p in poses], axis=0)
     radius = frame_radius(views, target)
     params["orbit"] = {"convergence_point": target.tolist(), "frame_radius": radius}
-    stage_clouds["input"] = cloud.xyz
+    stage_clouds["input"] = (cloud.xyz, cloud.rgb)
     full = cloud
     sel = np.arange(len(cloud))
 
@@ -153,7 +153,7 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         sel = sel[keep]
         cloud = cloud.subset(keep)
         counts[name] = int(len(cloud))
-        stage_clouds[name] = cloud.xyz
+        stage_clouds[name] = (cloud.xyz, cloud.rgb)
         if len(cloud) < 4:
             raise InputError(f"no dense region left after the {name} stage ({len(cloud)} "
                              f"points); the cloud may be all one plane or pure noise -- "
