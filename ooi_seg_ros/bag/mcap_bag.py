@@ -210,6 +210,12 @@ class BagWriter:
         self._t0 = t if self._t0 is None else min(self._t0, t)
         self._t1 = t if self._t1 is None else max(self._t1, t)
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """An MCAP metadata record (string key/values), e.g. capture details."""
+        if name == "rosbag2":
+            raise InputError("the rosbag2 metadata record is written by close()")
+        self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()})
+
     def _metadata_yaml(self) -> str:
         """rosbag2's ``serialized_metadata`` (bag information) for this file."""
         t0 = self._t0 if self._t0 is not None else _INF_SEC * 10**9 + _INF_NSEC
@@ -429,6 +435,23 @@ class BagReader:
         t0 = [i.t0 for i in self._idx if i.t0 is not None]
         t1 = [i.t1 for i in self._idx if i.t1 is not None]
         return (min(t0), max(t1)) if t0 else (0, 0)
+
+    def metadata(self, name: str) -> Optional[dict[str, str]]:
+        """The last MCAP metadata record called ``name`` in the bag, or None."""
+        from mcap.reader import make_reader
+
+        found = None
+        for idx in self._idx:
+            if idx.truncated or idx.error:
+                continue
+            try:
+                with open(idx.path, "rb") as f:
+                    for m in make_reader(f).iter_metadata():
+                        if m.name == name:
+                            found = dict(m.metadata)
+            except Exception:  # noqa: BLE001 — optional information
+                continue
+        return found
 
     def require_topics(self, topics: list[str]) -> None:
         """InputError naming the missing topics and the ones the bag has."""
