@@ -39,7 +39,7 @@ class FloorConfig:
     support_threshold: float = 2.0  # support mode: inlier threshold in nearest-neighbour spacings
     support_k: int = 1  # support mode: neighbour rank of the spacing used for the threshold
     support_max_planes: int = 6  # support mode: planes extracted one after another
-    support_min_inliers: float = 0.03  # support mode: smallest plane, fraction of the cloud
+    support_min_inliers: float = 0.1  # support mode: smallest plane, fraction of the cloud
     support_min_up: float = 0.7  # support mode: min cos(normal, mean camera up)
     band_sigmas: float = 2.5  # support mode: removal band = this x inlier residual std
     seed: int = 0  # RANSAC seed

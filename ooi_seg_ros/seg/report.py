@@ -35,13 +35,13 @@ def render_points(xyz: np.ndarray, rgb: np.ndarray, cam: CameraIntrinsics, pose)
 
 
 def stage_renders(result: SegmentationResult, capture: Capture, size: int = 360) -> dict:
-    """Each stage's cloud rendered from one fixed viewpoint that frames the input cloud."""
-    xyz0 = result.stage_clouds["input"][0]
+    """Each stage's cloud rendered from one fixed viewpoint that frames the final OOI cloud."""
+    xyz0 = result.ooi_cloud.xyz if len(result.ooi_cloud) else result.stage_clouds["input"][0]
     target = np.asarray(result.params["orbit"]["convergence_point"])
     pose0 = capture.views[0].pose
     d = pose0.t - target
     lo, hi = np.percentile(xyz0, 2, axis=0), np.percentile(xyz0, 98, axis=0)
-    dist = 1.6 * max(np.linalg.norm(hi - lo) / 2, 1e-6) / np.tan(np.radians(30))
+    dist = 2.5 * max(np.linalg.norm(hi - lo) / 2, 1e-6) / np.tan(np.radians(30))
     up = -pose0.R[:, 1]
     eye = target + d / max(np.linalg.norm(d), 1e-12) * dist
     pose = look_at(eye, target, up)

@@ -1,0 +1,130 @@
+"""Unit tests of the segmentation stages on small synthetic clouds with known answers."""
+
+import numpy as np
+import pytest
+
+from ooi_seg_ros.core.geometry import look_at
+from ooi_seg_ros.core.types import CameraIntrinsics, SfmCloud, View
+from ooi_seg_ros.seg.density import DensityConfig, density_filter, monte_carlo_density
+from ooi_seg_ros.seg.floor import FloorConfig, floor_filter
+from ooi_seg_ros.seg.masks import (MaskConfig, mesh_masks, point_masks, project_distorted,
+                                   undistorted_dirs)
+from ooi_seg_ros.seg.mesh import MeshConfig, build_mesh
+from ooi_seg_ros.seg.metrics import mask_metrics, scene_metrics
+from ooi_seg_ros.seg.noise import NoiseConfig, noise_filter
+
+
+def _ring_views(n=8, radius=3.0, height=1.5, target=(0, 0, 0.5), size=(64, 48)):
+    cam = CameraIntrinsics(size[0], size[1], 50.0, 50.0, (size[0] - 1) / 2, (size[1] - 1) / 2)
+    views = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        eye = np.array([radius * np.cos(a), radius * np.sin(a), height])
+        views.append(View(f"v{k}", k, cam, look_at(eye, np.array(target, float))))
+    return views
+
+
+def _sphere(n, r=0.5, c=(0, 0, 0.5), seed=0):
+    p = np.random.default_rng(seed).normal(size=(n, 3))
+    return p / np.linalg.norm(p, axis=1, keepdims=True) * r + np.array(c)
+
+
+def test_density_keeps_dense_blob_over_sparse_noise():
+    rng = np.random.default_rng(0)
+    blob = rng.normal(scale=0.05, size=(2000, 3))
+    noise = rng.uniform(-2, 2, size=(600, 3))
+    keep, p = density_filter(np.vstack([blob, noise]), DensityConfig(seed=1))
+    assert (keep < 2000).sum() > 0.9 * len(keep)
+    assert p["bandwidth"] > 0
+
+
+def test_density_truncated_kernel_ranks_like_dense_kde():
+    x = np.random.default_rng(2).normal(size=(800, 3)) * [1, 1, 0.3]
+    a, _ = monte_carlo_density(x, DensityConfig(seed=3, method="kdtree"))
+    b, _ = monte_carlo_density(x, DensityConfig(seed=3, method="sklearn"))
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    assert np.corrcoef(ra, rb)[0, 1] > 0.95
+
+
+def _floor_scene(seed=0):
+    rng = np.random.default_rng(seed)
+    floor = np.c_[rng.uniform(-2, 2, (4000, 2)), rng.normal(0, 0.003, 4000)]
+    obj = rng.uniform([-0.3, -0.3, 0.05], [0.3, 0.3, 0.8], (800, 3))
+    return np.vstack([floor, obj]), np.r_[np.zeros(4000, bool), np.ones(800, bool)]
+
+
+@pytest.mark.parametrize("mode", ["paper", "support"])
+def test_floor_removes_plane_and_keeps_object(mode):
+    xyz, is_obj = _floor_scene()
+    views = _ring_views()
+    centers = np.array([v.pose.t for v in views])
+    up = -np.mean([v.pose.R[:, 1] for v in views], axis=0)
+    keep, p = floor_filter(xyz, FloorConfig(mode=mode, n_thresholds=20), centers, up,
+                           np.array([0, 0, 0.5]))
+    kept_obj = is_obj[keep].sum()
+    assert kept_obj > 0.8 * is_obj.sum()
+    assert (~is_obj[keep]).sum() < 0.05 * (~is_obj).sum()
+
+
+def test_support_floor_warns_without_plane_under_object():
+    xyz = _sphere(2000)
+    views = _ring_views()
+    keep, p = floor_filter(xyz, FloorConfig(mode="support"),
+                           np.array([v.pose.t for v in views]), np.array([0, 0, 1.0]),
+                           np.array([0, 0, 0.5]))
+    assert len(keep) == len(xyz) and "warning" in p
+
+
+def test_noise_largest_and_central_cluster():
+    rng = np.random.default_rng(4)
+    big = rng.normal([3, 0, 0], 0.1, (1500, 3))
+    small = rng.normal([0, 0, 0], 0.1, (600, 3))
+    xyz = np.vstack([big, small, rng.uniform(-6, 6, (30, 3))])
+    k1, _ = noise_filter(xyz, NoiseConfig(select="largest"), np.zeros(3), 0.5)
+    k2, _ = noise_filter(xyz, NoiseConfig(select="central"), np.zeros(3), 0.5)
+    assert (k1 < 1500).mean() > 0.99 and len(k1) > 1400
+    assert ((k2 >= 1500) & (k2 < 2100)).mean() > 0.99 and len(k2) > 550
+    k3, p = noise_filter(xyz, NoiseConfig(method="sor", iterations=3), np.zeros(3), 0.5)
+    assert len(k3) < len(xyz) and p["rounds"] >= 1
+
+
+def test_mesh_of_sphere_and_mask_is_a_disc():
+    views = _ring_views(4)
+    cloud = SfmCloud.from_points(_sphere(3000))
+    cloud.views = views
+    mesh, p = build_mesh(cloud, MeshConfig(poisson_depth=6, trim_quantile=0.02))
+    assert not mesh.is_empty
+    r = np.linalg.norm(mesh.vertices - [0, 0, 0.5], axis=1)
+    assert abs(np.median(r) - 0.5) < 0.05
+    m = mesh_masks(mesh, views, MaskConfig())["v0"]
+    # the sphere seen from distance d has angular radius asin(r/d)
+    d = np.linalg.norm(views[0].pose.t - [0, 0, 0.5])
+    rad_px = 50.0 * np.tan(np.arcsin(0.5 / d))
+    assert abs(m.sum() - np.pi * rad_px ** 2) < 0.15 * np.pi * rad_px ** 2
+    pm = point_masks(cloud.xyz, np.full(len(cloud), 0.03), views[:1], MaskConfig())["v0"]
+    assert mask_metrics(pm, m)["iou"] > 0.65
+
+
+def test_distortion_roundtrip():
+    cam = CameraIntrinsics(80, 60, 60.0, 60.0, 40.0, 30.0, "plumb_bob",
+                           np.array([-0.2, 0.05, 0.001, -0.001, 0.0]))
+    view = _ring_views(1)[0]
+    dirs = undistorted_dirs(cam) @ view.pose.R.T
+    pts = view.pose.t + dirs * 2.0
+    uv, z = project_distorted(pts, cam, view.pose)
+    uu, vv = np.meshgrid(np.arange(80.0), np.arange(60.0))
+    assert np.abs(uv - np.c_[uu.ravel(), vv.ravel()]).max() < 1e-3
+
+
+def test_metrics_known_values():
+    gt = np.zeros((10, 10), bool)
+    gt[:5] = True
+    pred = np.zeros((10, 10), bool)
+    pred[:, :5] = True
+    m = mask_metrics(pred, gt)
+    assert m["iou"] == pytest.approx(25 / 75)
+    assert m["precision"] == pytest.approx(0.5) and m["recall"] == pytest.approx(0.5)
+    assert m["dice"] == pytest.approx(0.5)
+    s = scene_metrics({"a": pred, "b": gt}, {"a": gt, "b": gt, "c": gt})
+    assert s["mean"]["iou"] == pytest.approx((1 / 3 + 1) / 2)
+    assert s["missing_predictions"] == ["c"]
