@@ -274,7 +274,6 @@ def _type_name_of(cls) -> str:
     return f"{mod[0]}/msg/{cls.__name__}"
 
 
-
 def message_class(type_name: str):
     """The installed rclpy message class of a type, or None when it is not installed."""
     import importlib

@@ -26,8 +26,8 @@ def _frame_size(reader, topic: str, type_name: str) -> str:
                 from .. import msgconv
                 rgb = msgconv.compressed_to_rgb(msg)
                 return f"{rgb.shape[1]}x{rgb.shape[0]} ({msg.format})"
-            return f"{msg.width}x{msg.height}" + (f" {msg.encoding}"
-                                                   if hasattr(msg, "encoding") else "")
+            enc = f" {msg.encoding}" if hasattr(msg, "encoding") else ""
+            return f"{msg.width}x{msg.height}{enc}"
         except InputError as exc:
             return f"? ({exc})"
     return "-"
