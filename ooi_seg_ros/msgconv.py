@@ -163,8 +163,8 @@ def camera_info_to_intrinsics(msg: CameraInfo) -> CameraIntrinsics:
                          "(camera_calibration) and publish the result")
     model = (msg.distortion_model or "").strip()
     d = np.asarray(msg.d, dtype=float)
-    if model == "" and not np.any(d):
-        model = "none"
+    if not np.any(d) and model in ("", "none", "plumb_bob", "rational_polynomial"):
+        model = "none"  # all-zero coefficients: a pinhole camera whatever the name
     if model == "none" and np.any(d):
         model = "plumb_bob"
     cam = CameraIntrinsics(int(msg.width), int(msg.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2],
