@@ -31,6 +31,7 @@ def run(args: argparse.Namespace) -> int:
 
     rclpy.init()
     player = None
+    ex = spinner = None
     try:
         player = BagPlayer(args.bag, rate=args.rate, start_s=args.start, loop=args.loop,
                            topics=args.topics, remap=parse_remaps(args.remap),
@@ -51,5 +52,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if player is not None:
             player.stop()
+        if ex is not None:
+            ex.shutdown(timeout_sec=2.0)
+            spinner.join(timeout=2.0)
+        if player is not None:
             player.destroy_node()
         rclpy.try_shutdown()

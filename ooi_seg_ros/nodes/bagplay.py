@@ -7,7 +7,6 @@ rclpy nodes so they run in a normal executor, in-process (tests) or from the CLI
 
 from __future__ import annotations
 
-import importlib
 import sys
 import threading
 import time
@@ -17,21 +16,8 @@ import yaml
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..bag import BagReader, BagWriter
+from ..bag import BagReader, BagWriter, message_class
 from ..core.types import InputError
-
-
-def message_class(type_name: str):
-    """The Python class of a ROS message type ``pkg/msg/Name`` (None when not installed)."""
-    parts = type_name.split("/")
-    if len(parts) == 2:
-        parts = [parts[0], "msg", parts[1]]
-    if len(parts) != 3:
-        return None
-    try:
-        return getattr(importlib.import_module(f"{parts[0]}.{parts[1]}"), parts[2])
-    except (ImportError, AttributeError):
-        return None
 
 
 def qos_from_offered(offered: Optional[str], default_depth: int = 10) -> QoSProfile:

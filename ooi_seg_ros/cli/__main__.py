@@ -1,0 +1,7 @@
+"""``python -m ooi_seg_ros.cli`` == ``ooi-seg``."""
+
+import sys
+
+from . import main
+
+sys.exit(main())
