@@ -1,0 +1,428 @@
+"""Incremental SfM with known poses (the drone case).
+
+Each keyframe: SIFT (pycolmap) on the grey image, keypoints undistorted to normalised camera
+coordinates, pairs chosen from the poses (sequential neighbours plus the keyframes whose view
+frustums overlap most), mutual-nearest-neighbour matching with Lowe's ratio test, and geometric
+verification with the epipolar geometry the known poses imply (Sampson distance in pixels).
+Verified matches are merged into tracks by an incremental union-find. ``cloud()`` triangulates
+only tracks that changed since the last call (multi-view DLT with the poses fixed), drops
+observations with a large reprojection error, and keeps points with enough triangulation angle
+and track length. Every point keeps its colour, reprojection error and observations.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+from collections import Counter
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from ..core.geometry import cameras_convergence_point
+from ..core.types import CameraIntrinsics, InputError, Pose, SfmCloud, View
+
+LOG = logging.getLogger(__name__)
+
+
+@dataclass
+class IncrementalConfig:
+    """Options of the known-pose incremental SfM."""
+
+    max_features: int = 4096  # SIFT features per keyframe
+    peak_threshold: float = 0.0066  # SIFT contrast threshold (COLMAP default / octave count)
+    ratio: float = 0.8  # Lowe ratio test: best/second-best descriptor distance below this
+    sequential_pairs: int = 3  # match with this many previous keyframes in capture order
+    overlap_pairs: int = 5  # ... plus this many other keyframes with the largest view overlap
+    min_overlap: float = 0.25  # frustum-overlap fraction needed for an overlap pair
+    epipolar_px: float = 2.0  # Sampson distance (pixels) for a match to be verified
+    min_inliers: int = 12  # a pair with fewer verified matches contributes none
+    max_reproj_px: float = 2.0  # observations reprojecting worse than this are dropped
+    min_tri_angle_deg: float = 1.5  # points seen under a smaller max ray angle are dropped
+    min_track_length: int = 2  # points need this many observing keyframes
+    seed: int = 0  # seed for anything random (none at present; kept for determinism)
+
+
+# ----------------------------------------------------------------------------------------------
+# camera models
+
+def undistort_normalized(xy: np.ndarray, cam: CameraIntrinsics, iters: int = 20) -> np.ndarray:
+    """Normalised, undistorted camera coordinates [N,2] of pixel coordinates ``xy`` [N,2]."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    xd = (xy[:, 0] - cam.cx) / cam.fx
+    yd = (xy[:, 1] - cam.cy) / cam.fy
+    if not cam.has_distortion:
+        return np.stack([xd, yd], 1)
+    d = np.zeros(8)
+    dist = np.asarray(cam.dist, float)
+    d[:min(8, dist.size)] = dist[:8]
+    if cam.distortion_model == "equidistant":
+        k1, k2, k3, k4 = d[:4]
+        theta_d = np.hypot(xd, yd)
+        th = theta_d.copy()
+        for _ in range(iters):
+            th2 = th * th
+            f = th * (1 + k1 * th2 + k2 * th2**2 + k3 * th2**3 + k4 * th2**4) - theta_d
+            fp = 1 + 3 * k1 * th2 + 5 * k2 * th2**2 + 7 * k3 * th2**3 + 9 * k4 * th2**4
+            th = th - f / np.where(np.abs(fp) < 1e-9, 1e-9, fp)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.where(theta_d > 1e-12, np.tan(th) / theta_d, 1.0)
+        return np.stack([xd * s, yd * s], 1)
+    k1, k2, p1, p2, k3 = d[:5]
+    k4, k5, k6 = (d[5:8] if cam.distortion_model == "rational_polynomial" else (0.0, 0.0, 0.0))
+    x, y = xd.copy(), yd.copy()
+    for _ in range(iters):  # fixed-point inversion of the Brown-Conrady model
+        r2 = x * x + y * y
+        radial = (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        x = (xd - dx) / radial
+        y = (yd - dy) / radial
+    return np.stack([x, y], 1)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+# ----------------------------------------------------------------------------------------------
+# union-find over global feature ids
+
+class _Tracks:
+    """Incremental union-find with member lists and a set of changed roots."""
+
+    def __init__(self) -> None:
+        self.parent: list[int] = []
+        self.members: dict[int, list[int]] = {}
+        self.dirty: set[int] = set()
+
+    def add(self, n: int) -> None:
+        self.parent.extend(range(len(self.parent), len(self.parent) + n))
+
+    def find(self, a: int) -> int:
+        p = self.parent
+        root = a
+        while p[root] != root:
+            root = p[root]
+        while p[a] != root:
+            p[a], a = root, p[a]
+        return root
+
+    def union(self, a: int, b: int) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra == rb:
+            return
+        ma = self.members.pop(ra, [ra])
+        mb = self.members.pop(rb, [rb])
+        if len(ma) < len(mb):
+            ra, rb, ma, mb = rb, ra, mb, ma
+        self.parent[rb] = ra
+        ma.extend(mb)
+        self.members[ra] = ma
+        self.dirty.discard(rb)
+        self.dirty.add(ra)
+
+
+@dataclass
+class _Keyframe:
+    view: View
+    xy: np.ndarray  # [n,2] pixel coords (ROS convention, as detected, distorted)
+    xn: np.ndarray  # [n,2] normalised undistorted coords
+    desc: np.ndarray  # [n,128] float32, unit length
+    rgb: np.ndarray  # [n,3] uint8 colour at each keypoint
+    offset: int  # global id of feature 0
+    R_cw: np.ndarray
+    t_cw: np.ndarray
+
+
+def _check_view(view: View) -> None:
+    if view.camera is None:
+        raise InputError(f"view {view.key} has no camera intrinsics (no CameraInfo received); "
+                         "publish/record camera_info for the image topic")
+    view.camera.validate()
+    if view.pose is None:
+        raise InputError(f"view {view.key} has no pose; known-pose SfM needs one per keyframe "
+                         "(use the unknown-pose mapping route for photo folders)")
+    R, t = np.asarray(view.pose.R, float), np.asarray(view.pose.t, float)
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        raise InputError(f"view {view.key} has a NaN/inf pose")
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1) > 1e-3:
+        raise InputError(f"view {view.key} pose rotation is not orthonormal (non-unit "
+                         "quaternion?); normalise orientations before SfM")
+
+
+class IncrementalSfM:
+    """Known-pose SfM that grows keyframe by keyframe; ``cloud()`` may be called any time."""
+
+    def __init__(self, config: Optional[IncrementalConfig] = None,
+                 scene_scale: Optional[float] = None):
+        self.config = config or IncrementalConfig()
+        self.keyframes: list[_Keyframe] = []
+        self.tracks = _Tracks()
+        self.scene_scale = scene_scale
+        self.times = Counter()
+        self.counts = Counter()
+        self._sift = None
+        self._tri: dict[int, Optional[tuple]] = {}  # root -> triangulated point or None
+        self._n_features = 0
+
+    # -- features ----------------------------------------------------------------------------
+    def _extractor(self):
+        if self._sift is None:
+            import pycolmap
+            opt = pycolmap.FeatureExtractionOptions()
+            opt.use_gpu = False
+            opt.num_threads = 1
+            opt.max_image_size = 100000
+            opt.sift.max_num_features = self.config.max_features
+            opt.sift.peak_threshold = self.config.peak_threshold
+            with warnings.catch_warnings():  # pycolmap.Sift takes numpy images directly
+                warnings.simplefilter("ignore", DeprecationWarning)
+                self._sift = pycolmap.Sift(opt, pycolmap.Device.cpu)
+        return self._sift
+
+    def _features(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        img = view.get_image()
+        if img is None or img.ndim != 3 or img.shape[2] != 3:
+            raise InputError(f"view {view.key}: image must be RGB [H,W,3]")
+        cam = view.camera
+        if img.shape[0] != cam.height or img.shape[1] != cam.width:
+            raise InputError(f"view {view.key}: image {img.shape[1]}x{img.shape[0]} does not "
+                             f"match camera_info {cam.width}x{cam.height}")
+        grey = np.ascontiguousarray(
+            (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]).astype(np.uint8))
+        kp, desc = self._extractor().extract(grey)
+        kp = np.asarray(kp, float).reshape(-1, 4)
+        desc = np.asarray(desc, np.float32).reshape(len(kp), -1)
+        if len(kp):  # several orientations at one location: keep the first
+            _, first = np.unique(np.round(kp[:, :2], 2), axis=0, return_index=True)
+            first = np.sort(first)
+            kp, desc = kp[first], desc[first]
+        xy = kp[:, :2] - 0.5  # COLMAP pixel centres at +0.5 -> ROS
+        n = np.linalg.norm(desc, axis=1, keepdims=True)
+        desc = desc / np.maximum(n, 1e-12)
+        ij = np.clip(np.round(xy).astype(int), 0, [cam.width - 1, cam.height - 1])
+        rgb = img[ij[:, 1], ij[:, 0]]
+        return xy, desc, rgb
+
+    # -- pairs --------------------------------------------------------------------------------
+    def _depth_guess(self, kf: _Keyframe) -> float:
+        if self.scene_scale:
+            return float(self.scene_scale)
+        poses = [k.view.pose for k in self.keyframes]
+        if len(poses) >= 3:
+            c = cameras_convergence_point(poses)
+            d = float(np.dot(c - kf.view.pose.t, kf.view.pose.forward))
+            if np.isfinite(d) and d > 0:
+                return d
+        return 0.0
+
+    def _overlap(self, a: _Keyframe, b: _Keyframe, depth: float) -> float:
+        """Fraction of a 5x5 grid of a's image at ``depth`` that b sees in front of it."""
+        cam = a.view.camera
+        u = np.linspace(0.1, 0.9, 5) * (cam.width - 1)
+        v = np.linspace(0.1, 0.9, 5) * (cam.height - 1)
+        uu, vv = np.meshgrid(u, v)
+        ray = np.stack([(uu.ravel() - cam.cx) / cam.fx, (vv.ravel() - cam.cy) / cam.fy,
+                        np.ones(uu.size)], 1)
+        pts = (ray * depth) @ a.view.pose.R.T + a.view.pose.t
+        pc = pts @ b.R_cw.T + b.t_cw
+        cb = b.view.camera
+        ok = pc[:, 2] > 1e-9
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ub = cb.fx * pc[:, 0] / pc[:, 2] + cb.cx
+            vb = cb.fy * pc[:, 1] / pc[:, 2] + cb.cy
+        ok &= (ub >= 0) & (ub < cb.width) & (vb >= 0) & (vb < cb.height)
+        return float(ok.mean())
+
+    def _pairs(self, kf: _Keyframe) -> list[int]:
+        cfg = self.config
+        n = len(self.keyframes)
+        seq = list(range(max(0, n - cfg.sequential_pairs), n))
+        depth = self._depth_guess(kf)
+        others = [i for i in range(n) if i not in seq]
+        if depth > 0 and others and cfg.overlap_pairs > 0:
+            scores = [(self._overlap(kf, self.keyframes[i], depth), i) for i in others]
+            scores = [s for s in scores if s[0] >= cfg.min_overlap]
+            scores.sort(key=lambda s: (-s[0], s[1]))
+            seq += [i for _, i in scores[:cfg.overlap_pairs]]
+        return seq
+
+    # -- matching -----------------------------------------------------------------------------
+    def _match(self, a: _Keyframe, b: _Keyframe) -> np.ndarray:
+        """Verified matches [m,2] (feature index in a, in b)."""
+        cfg = self.config
+        if len(a.desc) < 2 or len(b.desc) < 2:
+            return np.zeros((0, 2), int)
+        sim = a.desc @ b.desc.T
+        dist2 = np.maximum(2.0 - 2.0 * sim, 0.0)
+        ia = np.argpartition(dist2, 1, axis=1)[:, :2]
+        d_ab = np.take_along_axis(dist2, ia, 1)
+        order = np.argsort(d_ab, axis=1)
+        ia = np.take_along_axis(ia, order, 1)
+        d_ab = np.take_along_axis(d_ab, order, 1)
+        best_b = ia[:, 0]
+        ratio_ok = np.sqrt(d_ab[:, 0]) < cfg.ratio * np.sqrt(d_ab[:, 1])
+        best_a = np.argmin(dist2, axis=0)
+        mutual = best_a[best_b] == np.arange(len(a.desc))
+        idx_a = np.nonzero(ratio_ok & mutual)[0]
+        idx_b = best_b[idx_a]
+        if len(idx_a) == 0:
+            return np.zeros((0, 2), int)
+        # epipolar check with the known relative pose (normalised coords, Sampson -> pixels)
+        R = b.R_cw @ a.R_cw.T
+        t = b.t_cw - R @ a.t_cw
+        E = _skew(t) @ R
+        x1 = np.c_[a.xn[idx_a], np.ones(len(idx_a))]
+        x2 = np.c_[b.xn[idx_b], np.ones(len(idx_b))]
+        Ex1 = x1 @ E.T
+        Etx2 = x2 @ E
+        num = np.sum(x2 * Ex1, 1) ** 2
+        den = Ex1[:, 0]**2 + Ex1[:, 1]**2 + Etx2[:, 0]**2 + Etx2[:, 1]**2
+        f = 0.5 * (a.view.camera.fx + b.view.camera.fx)
+        samp_px = np.sqrt(num / np.maximum(den, 1e-18)) * f
+        ok = samp_px < cfg.epipolar_px
+        m = np.stack([idx_a[ok], idx_b[ok]], 1)
+        if len(m) < cfg.min_inliers:
+            return np.zeros((0, 2), int)
+        return m
+
+    # -- public -------------------------------------------------------------------------------
+    def add_keyframe(self, view: View) -> dict:
+        """Extract, pair, match and merge tracks for one keyframe; returns per-step stats."""
+        _check_view(view)
+        if self.keyframes and view.stamp_ns < self.keyframes[-1].view.stamp_ns:
+            self.counts["dropped_stamp_backwards"] += 1
+            LOG.warning("keyframe %s dropped: stamp goes backwards", view.key)
+            return {"dropped": "stamp_backwards"}
+        t0 = time.perf_counter()
+        xy, desc, rgb = self._features(view)
+        R_cw, t_cw = view.pose.world_to_cam()
+        kf = _Keyframe(view, xy, undistort_normalized(xy, view.camera), desc, rgb,
+                       self._n_features, R_cw, t_cw)
+        self.tracks.add(len(xy))
+        t1 = time.perf_counter()
+        pairs = self._pairs(kf)
+        n_matches = 0
+        for i in pairs:
+            m = self._match(self.keyframes[i], kf)
+            self.counts["pairs"] += 1
+            if len(m) == 0:
+                self.counts["pairs_without_matches"] += 1
+                continue
+            n_matches += len(m)
+            oa = self.keyframes[i].offset
+            for a, b in m:
+                self.tracks.union(oa + int(a), kf.offset + int(b))
+        t2 = time.perf_counter()
+        self._n_features += len(xy)
+        self.keyframes.append(kf)
+        self.times["features_s"] += t1 - t0
+        self.times["matching_s"] += t2 - t1
+        self.counts["keyframes"] += 1
+        self.counts["verified_matches"] += n_matches
+        return {"key": view.key, "features": int(len(xy)), "pairs": len(pairs),
+                "verified_matches": int(n_matches), "features_s": t1 - t0,
+                "matching_s": t2 - t1}
+
+    def _feature_owner(self, fids: np.ndarray) -> np.ndarray:
+        offs = np.array([k.offset for k in self.keyframes])
+        return np.searchsorted(offs, fids, side="right") - 1
+
+    def _triangulate(self, roots: list[int]) -> None:
+        """(Re)triangulate the tracks ``roots`` and store results in ``self._tri``."""
+        cfg = self.config
+        if not roots:
+            return
+        Ps = np.stack([np.c_[k.R_cw, k.t_cw] for k in self.keyframes])  # [K,3,4]
+        centers = np.stack([k.view.pose.t for k in self.keyframes])
+        offs = np.array([k.offset for k in self.keyframes])
+        xn_all = np.concatenate([k.xn for k in self.keyframes])
+        fx = np.array([k.view.camera.fx for k in self.keyframes])
+        # group tracks by length for batched DLT
+        tracks = []
+        for r in roots:
+            mem = np.array(sorted(self.tracks.members.get(r, [r])))
+            kfi = np.searchsorted(offs, mem, side="right") - 1
+            _, first = np.unique(kfi, return_index=True)  # one observation per keyframe
+            if len(first) < len(kfi):
+                self.counts["track_conflicts"] += 1
+            tracks.append((r, mem[first], kfi[first]))
+        for r, mem, kfi in tracks:
+            self._tri[r] = None
+        for _round in range(2):
+            by_len: dict[int, list] = {}
+            for item in tracks:
+                if len(item[1]) >= max(2, cfg.min_track_length):
+                    by_len.setdefault(len(item[1]), []).append(item)
+            retry = []
+            for L, items in by_len.items():
+                mems = np.stack([it[1] for it in items])  # [T,L]
+                kfs = np.stack([it[2] for it in items])
+                x = xn_all[mems]  # [T,L,2]
+                P = Ps[kfs]  # [T,L,3,4]
+                A = np.concatenate([x[..., 0:1] * P[:, :, 2] - P[:, :, 0],
+                                    x[..., 1:2] * P[:, :, 2] - P[:, :, 1]], axis=1)
+                _, _, vt = np.linalg.svd(A)
+                Xh = vt[:, -1]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    X = Xh[:, :3] / Xh[:, 3:4]
+                pc = np.einsum("tlij,tj->tli", P[..., :3], X) + P[..., 3]
+                z = pc[..., 2]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    proj = pc[..., :2] / z[..., None]
+                err = np.linalg.norm(proj - x, axis=2) * fx[kfs]  # [T,L] pixels
+                err = np.where(np.isfinite(err) & (z > 0), err, np.inf)
+                for j, (r, mem, kfi) in enumerate(items):
+                    e = err[j]
+                    bad = e > cfg.max_reproj_px
+                    if bad.any():
+                        if _round == 0 and (~bad).sum() >= max(2, cfg.min_track_length):
+                            retry.append((r, mem[~bad], kfi[~bad]))
+                        continue
+                    if not np.all(np.isfinite(X[j])):
+                        continue
+                    rays = X[j] - centers[kfi]
+                    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+                    cosm = np.clip(rays @ rays.T, -1, 1).min()
+                    if np.degrees(np.arccos(cosm)) < cfg.min_tri_angle_deg:
+                        continue
+                    self._tri[r] = (X[j], mem, kfi, float(e.mean()))
+            tracks = retry
+            if not tracks:
+                break
+
+    def cloud(self) -> SfmCloud:
+        """The current cloud (triangulates the tracks changed since the last call)."""
+        t0 = time.perf_counter()
+        dirty = [r for r in self.tracks.dirty if self.tracks.find(r) == r]
+        self.tracks.dirty.clear()
+        for r in list(self._tri):
+            if self.tracks.find(r) != r:
+                del self._tri[r]
+        self._triangulate(dirty)
+        self.times["triangulation_s"] += time.perf_counter() - t0
+        views = [k.view for k in self.keyframes]
+        pts = [(r, v) for r, v in sorted(self._tri.items()) if v is not None]
+        if not pts:
+            return SfmCloud.empty(views)
+        xy_all = np.concatenate([k.xy for k in self.keyframes])
+        rgb_all = np.concatenate([k.rgb for k in self.keyframes]).astype(float)
+        xyz = np.stack([v[0] for _, v in pts])
+        lens = np.array([len(v[1]) for _, v in pts])
+        ptr = np.zeros(len(pts) + 1, np.int64)
+        np.cumsum(lens, out=ptr[1:])
+        mem = np.concatenate([v[1] for _, v in pts])
+        ov = np.concatenate([v[2] for _, v in pts]).astype(np.int32)
+        rgb = np.add.reduceat(rgb_all[mem], ptr[:-1], axis=0) / lens[:, None]
+        err = np.array([v[3] for _, v in pts])
+        return SfmCloud(xyz, np.clip(np.round(rgb), 0, 255).astype(np.uint8), err, ptr, ov,
+                        xy_all[mem].astype(np.float32), views)
+
+    def report(self) -> dict:
+        """Counts and time per step so far."""
+        return {"keyframes": len(self.keyframes), "counts": dict(self.counts),
+                "times_s": {k: round(v, 4) for k, v in self.times.items()},
+                "tracks_triangulated": sum(v is not None for v in self._tri.values())}
