@@ -86,7 +86,7 @@ def make_config(method: Optional[str] = None, overrides: Optional[dict] = None
         cfg = cfgmod.from_dict(SegmentationConfig, data)
     except (ValueError, TypeError) as exc:
         raise InputError(f"bad segmentation config: {exc}") from None
-    for sub in (cfg.density, cfg.floor):
+    for sub in (cfg.density, cfg.floor, cfg.refine):
         sub.seed = cfg.seed
     return cfg
 

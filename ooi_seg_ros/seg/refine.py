@@ -29,6 +29,7 @@ class RefineConfig:
     seed_radius: int = 1  # radius in px of the sure seeds drawn at observations
     max_side: int = 400  # crops larger than this are refined at reduced resolution
     max_area_change: float = 0.5  # reject results that grow/shrink the mask by more than this
+    seed: int = 0  # seed of OpenCV's RNG (GrabCut's colour-model initialisation)
 
 
 def _obs_by_view(cloud: SfmCloud, n_views: int) -> list[np.ndarray]:
@@ -100,6 +101,7 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
             out[v.key] = m
             continue
         bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+        cv2.setRNGSeed(int(cfg.seed) * 100003 + j)
         try:
             cv2.grabCut(np.ascontiguousarray(img[..., ::-1]), gc, None, bgd, fgd,
                         int(cfg.iterations), cv2.GC_INIT_WITH_MASK)
