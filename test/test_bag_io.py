@@ -204,3 +204,26 @@ def test_unclosed_in_place_writer_is_readable_up_to_last_chunk(tmp_path):
     assert got == [f"message number {i}" for i in range(len(got))]
     w.close()
     assert len(list(BagReader(p).messages())) == 50 and not BagReader(p).truncated
+
+
+def test_serialize_zeroes_padding_and_matches_rclpy():
+    """rclpy leaves CDR alignment padding uninitialised; bag bytes must not depend on it."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from ooi_seg_ros.bag.mcap_bag import serialize
+    from ooi_seg_ros.core.types import CameraIntrinsics
+    msgs = [msgconv.rgb_to_image(np.zeros((3, 5, 3), np.uint8), 5),
+            msgconv.intrinsics_to_camera_info(CameraIntrinsics(8, 6, 5, 5, 3, 2), 7),
+            msgconv.xyzrgb_to_pointcloud2(np.ones((4, 3)), np.zeros((4, 3), np.uint8), 3)]
+    for m in msgs:
+        outs = set()
+        for _ in range(5):
+            _junk = [serialize_message(String(data="x" * k)) for k in range(1, 60)]
+            outs.add(serialize(m))
+        assert len(outs) == 1 and _junk
+        data = outs.pop()
+        assert len(data) == len(serialize_message(m))
+        assert serialize_message(deserialize_message(data, type(m))).__len__() == len(data)
+        assert deserialize_message(data, type(m)) == m
+    # the Image padding after is_bigendian (bytes 50, 51) is zero
+    assert serialize(msgs[0])[50:52] == b"\x00\x00"

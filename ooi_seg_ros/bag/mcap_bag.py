@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 from typing import Any, Iterator, NamedTuple, Optional, Union
 
+import numpy as np
 import yaml
 
 from ..core.types import InputError
@@ -199,8 +200,7 @@ class BagWriter:
         if isinstance(msg, (bytes, bytearray, memoryview)):
             data = bytes(msg)
         else:
-            from rclpy.serialization import serialize_message
-            data = serialize_message(msg)
+            data = serialize(msg)
         t = int(log_time_ns)
         self._writer.add_message(self._channels[topic], log_time=t, data=data,
                                  publish_time=int(t if publish_time_ns is None
@@ -266,6 +266,60 @@ class BagWriter:
             os.remove(self._target)
         except OSError:
             pass
+
+
+def _as_plain(msg: Any) -> Any:
+    """A dict tree of an rclpy message that mcap_ros2's CDR encoder accepts."""
+    import array
+
+    out = {}
+    for name, ftype in msg.get_fields_and_field_types().items():
+        v = getattr(msg, name)
+        if hasattr(v, "get_fields_and_field_types"):
+            v = _as_plain(v)
+        elif isinstance(v, np.ndarray):
+            v = v.tobytes() if v.dtype == np.uint8 else v.tolist()
+        elif isinstance(v, array.array):
+            v = v if v.typecode == "B" else v.tolist()
+        elif isinstance(v, list):
+            if v and hasattr(v[0], "get_fields_and_field_types"):
+                v = [_as_plain(x) for x in v]
+            elif v and isinstance(v[0], bytes):
+                v = b"".join(v)
+        elif isinstance(v, bytes) and len(v) == 1 and ftype == "octet":
+            v = v[0]
+        out[name] = v
+    return out
+
+
+_ENCODERS: dict[str, Any] = {}
+
+
+def serialize(msg: Any) -> bytes:
+    """CDR bytes of an rclpy message with zeroed alignment padding (deterministic).
+
+    ``rclpy.serialization.serialize_message`` leaves alignment padding uninitialised, so the
+    same message can give different bytes; a bag written twice from the same capture must be
+    identical, so messages are encoded from their definition (mcap_ros2) and checked against
+    rclpy's length. Falls back to rclpy's bytes when the encoder cannot handle a type.
+    """
+    from rclpy.serialization import serialize_message
+
+    ref = serialize_message(msg)
+    tname = _type_name_of(type(msg))
+    enc = _ENCODERS.get(tname)
+    if enc is None:
+        from mcap_ros2._dynamic import serialize_dynamic
+        text = msgdefs.message_definition(tname)
+        enc = _ENCODERS[tname] = (serialize_dynamic(tname, text)[tname] if text else False)
+    if enc:
+        try:
+            data = bytes(enc(_as_plain(msg)))
+        except (ValueError, TypeError, KeyError, NotImplementedError, AttributeError):
+            data = b""
+        if len(data) == len(ref):
+            return data
+    return bytes(ref)
 
 
 def _type_name_of(cls) -> str:
