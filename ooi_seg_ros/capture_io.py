@@ -161,11 +161,28 @@ def _rgb_loader(path: Path, size: Optional[tuple[int, int]]):
 
 
 def read_ply_points(path: PathLike) -> np.ndarray:
-    """[N, 3] float64 vertex positions of a PLY point cloud (via open3d)."""
-    import open3d as o3d
+    """[N, 3] float64 vertex positions of a PLY point cloud.
+
+    The layout ``write_ply_points`` makes is parsed directly; any other PLY goes through open3d
+    (whose import costs about a second).
+    """
     p = Path(path)
     if not p.is_file():
         raise InputError(f"point file {p} does not exist")
+    raw = p.read_bytes()
+    end = raw.find(b"end_header\n")
+    if end > 0:
+        head = raw[:end].decode("ascii", "replace").splitlines()
+        props = [ln.split()[-1] for ln in head if ln.startswith("property")]
+        verts = [ln for ln in head if ln.startswith("element vertex")]
+        if ("format binary_little_endian 1.0" in head and props == ["x", "y", "z"]
+                and all(ln.split()[1] == "float" for ln in head if ln.startswith("property"))
+                and len(verts) == 1 and len([ln for ln in head if ln.startswith("element")]) == 1):
+            n = int(verts[0].split()[-1])
+            body = raw[end + len("end_header\n"):]
+            if len(body) >= n * 12 and n > 0:
+                return np.frombuffer(body, "<f4", count=n * 3).reshape(n, 3).astype(float)
+    import open3d as o3d
     pc = o3d.io.read_point_cloud(str(p))
     pts = np.asarray(pc.points, dtype=float)
     if len(pts) == 0:

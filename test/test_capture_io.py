@@ -262,3 +262,15 @@ def test_plain_image_folder(tmp_path):
         capture_io.read_capture(empty)
     with pytest.raises(InputError, match="downscale"):
         capture_io.read_capture(tmp_path, downscale=0.5)
+
+
+def test_ply_points_own_and_foreign(tmp_path):
+    pts = np.random.default_rng(1).normal(size=(20, 3))
+    capture_io.write_ply_points(tmp_path / "a.ply", pts)
+    assert np.allclose(capture_io.read_ply_points(tmp_path / "a.ply"), pts.astype(np.float32))
+    import open3d as o3d
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    o3d.io.write_point_cloud(str(tmp_path / "b.ply"), pc, write_ascii=True)
+    assert np.allclose(capture_io.read_ply_points(tmp_path / "b.ply"), pts, atol=1e-5)
+    with pytest.raises(InputError, match="does not exist"):
+        capture_io.read_ply_points(tmp_path / "c.ply")
