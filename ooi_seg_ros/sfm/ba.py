@@ -1,0 +1,54 @@
+"""Bundle adjustment of an ``SfmCloud`` with pycolmap (points only, or points and poses)."""
+
+from __future__ import annotations
+
+import copy
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..core.types import Pose, SfmCloud
+from .export import write_colmap_model
+
+
+def bundle_adjust(cloud: SfmCloud, refine_poses: bool = False,
+                  max_iterations: int = 50) -> tuple[SfmCloud, dict]:
+    """Refine the points (and with ``refine_poses`` the keyframe poses) of ``cloud``.
+
+    Intrinsics stay fixed. Returns a new cloud (views copied when poses change) and the
+    mean reprojection error before/after in pixels.
+    """
+    import pycolmap
+
+    if len(cloud) == 0:
+        return cloud, {"skipped": "empty cloud"}
+    with tempfile.TemporaryDirectory(prefix="sfm_ba_") as tmp:
+        write_colmap_model(cloud, Path(tmp))
+        rec = pycolmap.Reconstruction(tmp)
+    before = float(rec.compute_mean_reprojection_error())
+    opt = pycolmap.BundleAdjustmentOptions()
+    opt.refine_focal_length = False
+    opt.refine_principal_point = False
+    opt.refine_extra_params = False
+    opt.refine_points3D = True
+    opt.refine_rig_from_world = bool(refine_poses)
+    opt.print_summary = False
+    opt.ceres.solver_options.max_num_iterations = max_iterations
+    pycolmap.bundle_adjustment(rec, opt)
+    after = float(rec.compute_mean_reprojection_error())
+    out = copy.copy(cloud)
+    out.xyz = np.stack([np.asarray(rec.points3D[i + 1].xyz) for i in range(len(cloud))])
+    out.error = np.array([rec.points3D[i + 1].error for i in range(len(cloud))])
+    if refine_poses:
+        views = []
+        for k, v in enumerate(cloud.views):
+            cfw = rec.images[k + 1].cam_from_world()
+            R_cw = np.asarray(cfw.rotation.matrix())
+            t_cw = np.asarray(cfw.translation)
+            nv = copy.copy(v)
+            nv.pose = Pose(R_cw.T, -R_cw.T @ t_cw)
+            views.append(nv)
+        out.views = views
+    return out, {"mean_reprojection_px_before": before, "mean_reprojection_px_after": after,
+                 "refine_poses": bool(refine_poses)}

@@ -1,0 +1,175 @@
+"""SfM over a whole ``Capture``: keyframes -> incremental known-pose SfM, or mapping without poses.
+
+``reconstruct`` is what ``ooi-seg sfm`` and ``ooi-seg segment`` (via ``sfm.run_sfm``) call.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..core.geometry import cameras_convergence_point
+from ..core.types import Capture, InputError, SfmCloud
+from .incremental import IncrementalConfig, IncrementalSfM
+from .keyframes import KeyframeConfig, KeyframeSelector
+from .mapping import MappingConfig, map_image_folder
+
+LOG = logging.getLogger(__name__)
+
+
+@dataclass
+class SfmConfig:
+    """The SfM stage: keyframe selection, incremental SfM, optional BA, unknown-pose mapping."""
+
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)  # keyframe selection
+    incremental: IncrementalConfig = field(default_factory=IncrementalConfig)  # known poses
+    mapping: MappingConfig = field(default_factory=MappingConfig)  # unknown poses
+    use_all_frames: bool = False  # skip keyframe selection (a photo set is all keyframes)
+    bundle_adjust: bool = False  # refine the points with pycolmap BA (poses fixed)
+    refine_poses: bool = False  # with bundle_adjust: refine the keyframe poses too
+    progress: bool = True  # print a progress bar on stderr
+
+
+class Progress:
+    """A plain-text progress bar on stderr (no dependency)."""
+
+    def __init__(self, label: str, total: int, enabled: bool = True, width: int = 30):
+        self.label, self.total, self.enabled, self.width = label, max(total, 1), enabled, width
+        self.t0 = time.perf_counter()
+
+    def update(self, done: int, extra: str = "") -> None:
+        if not self.enabled:
+            return
+        f = min(done / self.total, 1.0)
+        bar = "#" * int(f * self.width) + "-" * (self.width - int(f * self.width))
+        el = time.perf_counter() - self.t0
+        end = "\n" if done >= self.total else ""
+        print(f"\r{self.label} [{bar}] {done}/{self.total} {el:6.1f}s {extra}", end=end,
+              file=sys.stderr, flush=True)
+
+
+def _scene_scale(capture: Capture) -> Optional[float]:
+    poses = [v.pose for v in capture.views if v.pose is not None]
+    if len(poses) < 3:
+        return None
+    c = cameras_convergence_point(poses)
+    d = np.linalg.norm(np.stack([p.t for p in poses]) - c, axis=1)
+    s = float(np.median(d))
+    return s if np.isfinite(s) and s > 0 else None
+
+
+def reconstruct(capture: Capture, config: Optional[SfmConfig] = None,
+                work_dir: Optional[str | Path] = None) -> tuple[Capture, SfmCloud, dict]:
+    """(Capture of the keyframes with poses, SfmCloud, report) of ``capture``.
+
+    Posed captures go through keyframe selection and the known-pose incremental SfM; captures
+    without poses through pycolmap mapping of their image folder (``work_dir`` holds its
+    database and model).
+    """
+    cfg = config or SfmConfig()
+    if len(capture.views) < 2:
+        raise InputError(f"capture {capture.source or ''} has {len(capture.views)} views; SfM "
+                         "needs at least 2 overlapping images")
+    report: dict = {"input_views": len(capture.views), "times_s": {}}
+    if not capture.has_poses:
+        return _reconstruct_unposed(capture, cfg, work_dir, report)
+    # keyframes
+    t0 = time.perf_counter()
+    sel = KeyframeSelector(cfg.keyframes)
+    scale = _scene_scale(capture)
+    if scale is not None:
+        sel.set_scene_scale(scale)
+    for v in capture.views:
+        if v.camera is None:
+            raise InputError(f"view {v.key} has no camera intrinsics (no CameraInfo); record "
+                             "camera_info with the images")
+        v.camera.validate()
+    keyframes = []
+    for v in capture.views:
+        if cfg.use_all_frames:
+            ok = v.pose is not None
+        else:
+            ok = sel.offer(v)
+        if ok:
+            keyframes.append(v)
+    report["keyframe_selection"] = sel.report() if not cfg.use_all_frames else {
+        "frames_seen": len(capture.views), "keyframes": len(keyframes), "dropped": {}}
+    report["times_s"]["keyframes"] = time.perf_counter() - t0
+    if len(keyframes) < 2:
+        raise InputError(f"only {len(keyframes)} keyframe(s) selected from "
+                         f"{len(capture.views)} frames (drops: {dict(sel.dropped)}); the camera "
+                         "must move around the object (or lower keyframes.translation_frac)")
+    sfm = IncrementalSfM(cfg.incremental, scene_scale=scale)
+    bar = Progress("sfm keyframes", len(keyframes), cfg.progress)
+    for i, v in enumerate(keyframes):
+        sfm.add_keyframe(v)
+        bar.update(i + 1)
+    cloud = sfm.cloud()
+    rep = sfm.report()
+    report["incremental"] = rep
+    report["times_s"].update(rep["times_s"])
+    if len(cloud) == 0:
+        raise InputError(f"SfM found no 3D points in {len(keyframes)} keyframes "
+                         f"({rep['counts'].get('verified_matches', 0)} verified matches): the "
+                         "images are textureless, out of focus or do not overlap")
+    if cfg.bundle_adjust:
+        from .ba import bundle_adjust
+        t0 = time.perf_counter()
+        cloud, report["bundle_adjustment"] = bundle_adjust(cloud, cfg.refine_poses)
+        report["times_s"]["bundle_adjustment_s"] = time.perf_counter() - t0
+    out_cap = Capture(views=list(cloud.views), source=capture.source,
+                      gt_ooi_points=capture.gt_ooi_points, meta=dict(capture.meta))
+    report.update(summarize(cloud))
+    return out_cap, cloud, report
+
+
+def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[str | Path],
+                         report: dict) -> tuple[Capture, SfmCloud, dict]:
+    srcs = [Path(v.source) for v in capture.views if v.source]
+    folders = {p.parent for p in srcs}
+    tmp = None
+    if len(srcs) == len(capture.views) and len(folders) == 1 and all(p.is_file() for p in srcs):
+        images_dir = folders.pop()
+    else:  # write the images out for pycolmap
+        from PIL import Image
+        tmp = tempfile.TemporaryDirectory(prefix="sfm_images_")
+        images_dir = Path(tmp.name)
+        for v in capture.views:
+            Image.fromarray(v.get_image()).save(images_dir / f"{v.key}.png")
+    work = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="sfm_map_"))
+    try:
+        cap, cloud, stats = map_image_folder(images_dir, work, cfg.mapping)
+        if tmp is not None:  # load the images before their temporary folder goes
+            for v in cap.views:
+                v.get_image()
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    report["mapping"] = stats
+    report["times_s"].update({f"{k}_s": v for k, v in stats["times_s"].items()})
+    report["keyframe_selection"] = {"frames_seen": len(capture.views),
+                                    "keyframes": stats["registered_images"],
+                                    "dropped": {"not_registered": len(capture.views)
+                                                - stats["registered_images"]}}
+    report.update(summarize(cloud))
+    return cap, cloud, report
+
+
+def summarize(cloud: SfmCloud) -> dict:
+    """Points, mean track length and median reprojection error of a cloud."""
+    n = len(cloud)
+    return {"points": n, "keyframes_used": len(cloud.views),
+            "mean_track_length": float(np.mean(cloud.track_lengths())) if n else 0.0,
+            "median_reprojection_px": float(np.median(cloud.error)) if n else 0.0}
+
+
+def run_sfm(capture: Capture, config: Optional[SfmConfig] = None) -> SfmCloud:
+    """The SfM cloud of ``capture`` (what the segmentation CLI calls without a cloud)."""
+    return reconstruct(capture, config)[1]
