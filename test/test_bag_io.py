@@ -227,3 +227,25 @@ def test_serialize_zeroes_padding_and_matches_rclpy():
         assert deserialize_message(data, type(m)) == m
     # the Image padding after is_bigendian (bytes 50, 51) is zero
     assert serialize(msgs[0])[50:52] == b"\x00\x00"
+
+
+def test_corrupted_chunk_and_foreign_storage(tmp_path):
+    p = _write_demo(tmp_path / "c.mcap", n=10)
+    data = bytearray(p.read_bytes())
+    with open(p, "rb") as f:
+        ci = make_reader(f).get_summary().chunk_indexes[0]
+    mid = ci.chunk_start_offset + ci.chunk_length // 2
+    data[mid:mid + 16] = b"\xff" * 16
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="damaged|mcap recover"):
+        list(BagReader(bad).messages())
+    d = tmp_path / "sqlite_bag"
+    d.mkdir()
+    (d / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
+        "storage_identifier": "sqlite3", "relative_file_paths": ["x.db3"]}}))
+    with pytest.raises(InputError, match="ros2 bag convert"):
+        BagReader(d)
+    (d / "metadata.yaml").write_text("rosbag2_bagfile_information: [oops")
+    with pytest.raises(InputError, match="metadata"):
+        BagReader(d)

@@ -121,8 +121,7 @@ class BagWriter:
 
         self.path = Path(path)
         if self.path.suffix != ".mcap":
-            self.path = self.path.with_name(self.path.name + ".mcap") \
-                if not self.path.name.endswith(".mcap") else self.path
+            self.path = self.path.with_name(self.path.name + ".mcap")
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE, "": CompressionType.NONE}.get(compression)
         if comp is None:
@@ -358,6 +357,9 @@ def _bag_files(path: Path) -> list[Path]:
         except (yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
             raise InputError(f"{meta} is not a rosbag2 metadata file ({exc}); remove it or "
                              "re-create it with `ros2 bag reindex`") from exc
+        if info.get("compression_mode") == "FILE" and info.get("compression_format"):
+            raise InputError(f"bag {path} is file-compressed ({info['compression_format']}); "
+                             "run `ros2 bag decompress` (or zstd -d) on it first")
         if storage != "mcap":
             raise InputError(f"bag {path} uses storage {storage!r}; convert it to MCAP with "
                              "`ros2 bag convert` (only mcap is read)")
@@ -418,7 +420,7 @@ class _FileIndex:
         from mcap.stream_reader import StreamReader
 
         with open(self.path, "rb") as f:
-            it = StreamReader(f, record_size_limit=1 << 31).records
+            it = StreamReader(f, record_size_limit=1 << 31, validate_crcs=True).records
             while True:
                 try:
                     rec = next(it)
@@ -532,7 +534,7 @@ class BagReader:
                         yield self._bag_message(idx, ch, m)
                 continue
             with open(idx.path, "rb") as f:
-                reader = make_reader(f)
+                reader = make_reader(f, validate_crcs=True)
                 try:
                     for _sch, ch, m in reader.iter_messages(
                             topics=list(want) if want is not None else None,
