@@ -274,3 +274,14 @@ def test_ply_points_own_and_foreign(tmp_path):
     assert np.allclose(capture_io.read_ply_points(tmp_path / "b.ply"), pts, atol=1e-5)
     with pytest.raises(InputError, match="does not exist"):
         capture_io.read_ply_points(tmp_path / "c.ply")
+
+
+def test_info_cli_on_capture_folder(tmp_path, capsys):
+    from ooi_seg_ros.cli import main as cli_main
+    out = capture_io.write_capture(_capture(n=3), tmp_path / "cap")
+    assert cli_main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "(nerfstudio)" in text and "views:    3" in text and "gt masks: 3" in text
+    bag = capture_io.write_capture(_capture(n=3), tmp_path / "cap.mcap")
+    assert cli_main(["info", str(bag)]) == 0
+    assert "/ground_truth/mask" in capsys.readouterr().out

@@ -1,4 +1,7 @@
-"""``ooi-seg info BAG``: topics, types, message counts, time span and image sizes of a bag."""
+"""``ooi-seg info BAG``: topics, types, message counts, time span and image sizes of a bag.
+
+Given a dataset folder instead (COLMAP, nerfstudio, image folder) it summarises the capture.
+"""
 
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ _IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage",
 def register(subparsers) -> None:
     p = subparsers.add_parser("info", help="summarise a bag (.mcap file or rosbag2 folder)",
                               description=__doc__)
-    p.add_argument("bag", help=".mcap file or rosbag2 bag folder")
+    p.add_argument("bag", help=".mcap file or rosbag2 bag folder (or a dataset folder)")
     p.set_defaults(func=run)
 
 
@@ -58,6 +61,26 @@ def summarise(path: str) -> str:
     return "\n".join(lines)
 
 
+def summarise_capture(path: str) -> str:
+    """Views, image sizes, poses and ground truth of a non-bag capture folder."""
+    from ..capture_io import input_kind, read_capture
+
+    kind = input_kind(path)
+    cap = read_capture(path)
+    sizes = sorted({f"{v.camera.width}x{v.camera.height}" for v in cap.views})
+    posed = sum(v.pose is not None for v in cap.views)
+    masks = sum(v.gt_mask is not None for v in cap.views)
+    gt = 0 if cap.gt_ooi_points is None else len(cap.gt_ooi_points)
+    return "\n".join([f"capture:  {path} ({kind})", f"views:    {len(cap)}",
+                      f"frames:   {', '.join(sizes)}", f"poses:    {posed} of {len(cap)}",
+                      f"gt masks: {masks}", f"gt ooi points: {gt}"])
+
+
 def run(args: argparse.Namespace) -> int:
-    print(summarise(args.bag))
+    from ..capture_io import input_kind
+
+    if input_kind(args.bag) != "bag":
+        print(summarise_capture(args.bag))
+    else:
+        print(summarise(args.bag))
     return 0
