@@ -285,3 +285,25 @@ def test_info_cli_on_capture_folder(tmp_path, capsys):
     bag = capture_io.write_capture(_capture(n=3), tmp_path / "cap.mcap")
     assert cli_main(["info", str(bag)]) == 0
     assert "/ground_truth/mask" in capsys.readouterr().out
+
+
+def test_capture_bag_decodes_from_embedded_definitions(tmp_path):
+    """Tools without ROS (Foxglove, mcap_ros2) decode every message from the schemas alone."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    cap = _capture(n=2, dist=True)
+    p = capture_io.write_capture_bag(cap, tmp_path / "c.mcap")
+    n = 0
+    by_stamp = {v.stamp_ns: v.image.tobytes() for v in cap.views}
+    with open(p, "rb") as f:
+        for _s, ch, _m, dec in make_reader(f, decoder_factories=[DecoderFactory()]) \
+                .iter_decoded_messages():
+            n += 1
+            if ch.topic == "/camera/image_raw":
+                assert dec.encoding == "rgb8" and dec.width == 32
+                stamp = dec.header.stamp.sec * 10**9 + dec.header.stamp.nanosec
+                assert bytes(dec.data) == by_stamp[stamp]
+            if ch.topic == "/camera/camera_info":
+                assert dec.distortion_model == "plumb_bob" and list(dec.k)[0] == 30.0
+    assert n == 2 * 4 + 1
