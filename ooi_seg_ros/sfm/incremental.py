@@ -42,6 +42,7 @@ class IncrementalConfig:
     max_reproj_px: float = 2.0  # observations reprojecting worse than this are dropped
     min_tri_angle_deg: float = 1.5  # points seen under a smaller max ray angle are dropped
     min_track_length: int = 2  # points need this many observing keyframes
+    refine_iters: int = 3  # Gauss-Newton steps on each point's reprojection error (poses fixed)
     seed: int = 0  # seed for anything random (none at present; kept for determinism)
 
 
@@ -85,6 +86,25 @@ def undistort_normalized(xy: np.ndarray, cam: CameraIntrinsics, iters: int = 20)
 
 def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def _gauss_newton_step(X: np.ndarray, P: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """One batched Gauss-Newton step of points X [T,3] on normalised reprojection error."""
+    R, t = P[..., :3], P[..., 3]
+    pc = np.einsum("tlij,tj->tli", R, X) + t
+    z = pc[..., 2:3]
+    uv = pc[..., :2] / z
+    r = (uv - x).reshape(len(X), -1)  # [T, 2L]
+    J = (R[..., :2, :] - uv[..., :, None] * R[..., 2:3, :]) / z[..., None]  # [T,L,2,3]
+    J = J.reshape(len(X), -1, 3)
+    JtJ = np.einsum("tki,tkj->tij", J, J) + 1e-12 * np.eye(3)
+    Jtr = np.einsum("tki,tk->ti", J, r)
+    try:
+        dx = np.linalg.solve(JtJ, Jtr[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return X
+    Xn = X - dx
+    return np.where(np.isfinite(Xn), Xn, X)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -195,7 +215,10 @@ class IncrementalSfM:
             (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]).astype(np.uint8))
         kp, desc = self._extractor().extract(grey)
         kp = np.asarray(kp, float).reshape(-1, 4)
-        desc = np.asarray(desc, np.float32).reshape(len(kp), -1)
+        desc = np.asarray(desc, np.float32).reshape(len(kp), 128)
+        if len(kp) == 0:
+            self.counts["keyframes_without_features"] += 1
+            LOG.warning("keyframe %s: no SIFT features (textureless or out of focus)", view.key)
         if len(kp):  # several orientations at one location: keep the first
             _, first = np.unique(np.round(kp[:, :2], 2), axis=0, return_index=True)
             first = np.sort(first)
@@ -369,6 +392,8 @@ class IncrementalSfM:
                 Xh = vt[:, -1]
                 with np.errstate(divide="ignore", invalid="ignore"):
                     X = Xh[:, :3] / Xh[:, 3:4]
+                    for _ in range(cfg.refine_iters):
+                        X = _gauss_newton_step(X, P, x)
                 pc = np.einsum("tlij,tj->tli", P[..., :3], X) + P[..., 3]
                 z = pc[..., 2]
                 with np.errstate(divide="ignore", invalid="ignore"):

@@ -1,0 +1,237 @@
+"""SfM: incremental known-pose SfM on simulator captures, keyframes, export, bad input, CLI."""
+
+import copy
+import json
+
+import numpy as np
+import pycolmap
+import pytest
+
+from ooi_seg_ros.cli import main as cli_main
+from ooi_seg_ros.core.types import CameraIntrinsics, InputError, Pose
+from ooi_seg_ros.sfm.colmap_io import load_colmap_model
+from ooi_seg_ros.sfm.export import write_colmap_model, write_ply
+from ooi_seg_ros.sfm.incremental import IncrementalConfig, IncrementalSfM, undistort_normalized
+from ooi_seg_ros.sfm.keyframes import KeyframeConfig, KeyframeSelector, laplacian_variance
+from ooi_seg_ros.sfm.pipeline import SfmConfig, reconstruct
+from ooi_seg_ros.sim import simulate_capture
+
+N_VIEWS = 16
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate_capture("aircraft", n_views=N_VIEWS, width=256, height=192, seed=1)
+
+
+@pytest.fixture(scope="module")
+def built(sim):
+    sfm = IncrementalSfM(IncrementalConfig())
+    half = None
+    for i, v in enumerate(sim.capture.views):
+        sfm.add_keyframe(v)
+        if i == N_VIEWS // 2 - 1:
+            half = sfm.cloud()
+    return sfm, half, sfm.cloud()
+
+
+def test_points_lie_on_the_true_surface(sim, built):
+    _, _, cloud = built
+    assert len(cloud) > 100
+    d = np.abs(sim.scene.distance_to_surface(cloud.xyz))
+    scale = sim.scene.summary()["scale"]
+    assert np.median(d) < 0.005 * scale  # < 0.5 % of the object size
+    assert np.mean(d < 0.02 * scale) > 0.8  # 2-view tracks carry some epipolar-line outliers
+
+
+def test_points_keep_colour_error_and_visibility(sim, built):
+    _, _, cloud = built
+    lens = cloud.track_lengths()
+    assert lens.min() >= 2 and cloud.obs_ptr[-1] == len(cloud.obs_view)
+    assert np.all(cloud.error <= IncrementalConfig().max_reproj_px)
+    assert len(cloud.views) == N_VIEWS
+    cam = sim.capture.views[0].camera
+    assert np.all((cloud.obs_xy >= -0.5) & (cloud.obs_xy < [cam.width, cam.height]))
+    for i in range(0, len(cloud), max(1, len(cloud) // 50)):
+        views, xy = cloud.observations(i)
+        assert len(set(views.tolist())) == len(views)  # one observation per keyframe
+        for vi, p in zip(views, xy):  # the point projects where it was observed
+            v = cloud.views[vi]
+            R_cw, t_cw = v.pose.world_to_cam()
+            pc = R_cw @ cloud.xyz[i] + t_cw
+            uv = [cam.fx * pc[0] / pc[2] + cam.cx, cam.fy * pc[1] / pc[2] + cam.cy]
+            assert pc[2] > 0 and np.hypot(*(uv - p)) < 2.5
+    assert cloud.rgb.dtype == np.uint8 and cloud.rgb.std() > 5  # real colours, not a constant
+
+
+def test_adding_keyframes_extends_the_cloud(built):
+    sfm, half, full = built
+    assert 0 < len(half) < len(full)
+    # points of the first half survive (same position) unless their track grew
+    full_set = {tuple(np.round(p, 6)) for p in full.xyz}
+    kept = np.mean([tuple(np.round(p, 6)) in full_set for p in half.xyz])
+    assert kept > 0.5
+    rep = sfm.report()
+    assert rep["keyframes"] == N_VIEWS and rep["counts"]["verified_matches"] > 0
+
+
+def test_export_roundtrips_through_pycolmap(built, tmp_path):
+    _, _, cloud = built
+    write_colmap_model(cloud, tmp_path / "sparse")
+    rec = pycolmap.Reconstruction(str(tmp_path / "sparse"))
+    assert rec.num_points3D() == len(cloud) and rec.num_reg_images() == N_VIEWS
+    # pycolmap recomputes the same reprojection error from our poses + observations
+    assert rec.compute_mean_reprojection_error() == pytest.approx(cloud.error.mean(), rel=1e-3)
+    _, back = load_colmap_model(tmp_path / "sparse")
+    np.testing.assert_allclose(back.xyz, cloud.xyz, atol=1e-9)
+    np.testing.assert_allclose(back.obs_xy, cloud.obs_xy, atol=1e-3)
+    import open3d as o3d
+    write_ply(cloud.xyz, cloud.rgb, tmp_path / "p.ply")
+    pc = o3d.io.read_point_cloud(str(tmp_path / "p.ply"))
+    assert len(pc.points) == len(cloud)
+    np.testing.assert_allclose(np.asarray(pc.colors) * 255, cloud.rgb, atol=0.6)
+
+
+def _distort(x, y, model, d):
+    if model == "equidistant":
+        r = np.hypot(x, y)
+        th = np.arctan(r)
+        thd = th * (1 + d[0] * th**2 + d[1] * th**4 + d[2] * th**6 + d[3] * th**8)
+        s = np.where(r > 0, thd / np.maximum(r, 1e-12), 1.0)
+        return x * s, y * s
+    k = np.zeros(8)
+    k[:len(d)] = d
+    r2 = x * x + y * y
+    rad = (1 + k[0] * r2 + k[1] * r2**2 + k[4] * r2**3) / (1 + k[5] * r2 + k[6] * r2**2
+                                                          + k[7] * r2**3)
+    return (x * rad + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x),
+            y * rad + k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y)
+
+
+@pytest.mark.parametrize("model,dist", [
+    ("plumb_bob", [-0.2, 0.05, 0.001, -0.002, 0.01]),
+    ("rational_polynomial", [-0.2, 0.05, 0.001, -0.002, 0.01, 0.02, 0.0, 0.001]),
+    ("equidistant", [0.05, -0.01, 0.002, 0.0])])
+def test_undistortion_inverts_each_distortion_model(model, dist):
+    cam = CameraIntrinsics(320, 240, 250.0, 250.0, 159.5, 119.5, model, np.array(dist))
+    rng = np.random.default_rng(0)
+    xn = rng.uniform(-0.5, 0.5, (200, 2))
+    xd, yd = _distort(xn[:, 0], xn[:, 1], model, np.array(dist))
+    px = np.stack([xd * cam.fx + cam.cx, yd * cam.fy + cam.cy], 1)
+    np.testing.assert_allclose(undistort_normalized(px, cam), xn, atol=1e-6)
+
+
+def test_keyframe_selector_counts_drop_reasons(sim):
+    views = sim.capture.views
+    sel = KeyframeSelector(KeyframeConfig())
+    sel.set_scene_scale(50.0)
+    assert sel.offer(views[0])
+    same = copy.copy(views[0])
+    same.stamp_ns += 1
+    assert not sel.offer(same)  # did not move
+    nan = copy.copy(views[1])
+    nan.pose = Pose(views[1].pose.R * np.nan, views[1].pose.t)
+    assert not sel.offer(nan)
+    back = copy.copy(views[2])
+    back.stamp_ns = views[0].stamp_ns - 10
+    assert not sel.offer(back)
+    for v in views[1:8]:
+        sel.offer(v)
+    blurry = copy.copy(views[8])
+    img = views[8].image.astype(float)
+    for _ in range(6):  # box blur
+        img = (img + np.roll(img, 1, 0) + np.roll(img, -1, 0) + np.roll(img, 1, 1)
+               + np.roll(img, -1, 1)) / 5
+    blurry.image = img.astype(np.uint8)
+    assert laplacian_variance(blurry.image) < 0.3 * laplacian_variance(views[8].image)
+    assert not sel.offer(blurry)
+    rep = sel.report()
+    for reason in ("too_close", "nan_pose", "stamp_backwards", "blurry"):
+        assert rep["dropped"].get(reason, 0) >= 1, reason
+
+
+def _small_capture(n=6):
+    return simulate_capture("toycar", n_views=n, width=96, height=72, seed=3).capture
+
+
+def test_bad_intrinsics_and_poses_raise_input_error():
+    cap = _small_capture(3)
+    for change in ("zero_f", "nan_c", "nan_pose", "non_unit", "no_camera"):
+        v = copy.copy(cap.views[0])
+        if change == "zero_f":
+            v.camera = copy.copy(v.camera)
+            v.camera.fx = 0.0
+        elif change == "nan_c":
+            v.camera = copy.copy(v.camera)
+            v.camera.cx = float("nan")
+        elif change == "nan_pose":
+            v.pose = Pose(np.full((3, 3), np.nan), v.pose.t)
+        elif change == "non_unit":
+            v.pose = Pose(v.pose.R * 1.3, v.pose.t)  # what a non-unit quaternion turns into
+        else:
+            v.camera = None
+        with pytest.raises(InputError):
+            IncrementalSfM().add_keyframe(v)
+
+
+def test_stamps_going_backwards_are_counted_drops():
+    cap = _small_capture(3)
+    sfm = IncrementalSfM()
+    sfm.add_keyframe(cap.views[1])
+    assert sfm.add_keyframe(cap.views[0]) == {"dropped": "stamp_backwards"}
+    assert sfm.report()["counts"]["dropped_stamp_backwards"] == 1
+
+
+def test_fewer_than_two_keyframes_is_an_input_error():
+    cap = _small_capture(3)
+    cap.views = cap.views[:1]
+    with pytest.raises(InputError, match="at least 2"):
+        reconstruct(cap, SfmConfig(progress=False))
+    cap = _small_capture(3)
+    cap.views = [cap.views[0]] + [copy.copy(cap.views[0]) for _ in range(3)]
+    for i, v in enumerate(cap.views):
+        v.stamp_ns += i
+    with pytest.raises(InputError, match="keyframe"):  # the camera never moves
+        reconstruct(cap, SfmConfig(progress=False))
+
+
+def test_textureless_capture_is_an_input_error_not_an_empty_cloud():
+    cap = _small_capture(6)
+    for v in cap.views:
+        v.image = np.full_like(v.image, 128)
+    with pytest.raises(InputError, match="no 3D points"):
+        reconstruct(cap, SfmConfig(progress=False, use_all_frames=True))
+
+
+def test_cli_on_a_bag_and_reuse_of_a_colmap_folder(tmp_path, capsys):
+    bag = tmp_path / "cap.mcap"
+    assert cli_main(["simulate", "--scene", "aircraft", "--out", str(bag), "--views", "12",
+                     "--size", "192x144"]) == 0
+    out = tmp_path / "out"
+    assert cli_main(["sfm", str(bag), "--out", str(out), "--quiet"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["points"] > 20 and rep["input_kind"] == "bag"
+    for key in ("keyframe_selection", "mean_track_length", "median_reprojection_px", "times_s"):
+        assert key in rep
+    assert (out / "sfm_points.ply").stat().st_size > 200
+    rec = pycolmap.Reconstruction(str(out / "sparse"))
+    assert rec.num_points3D() == rep["points"]
+    # a COLMAP dataset folder (images/ + sparse/0) made from that output, loaded with --reuse
+    ds = tmp_path / "ds"
+    (ds / "sparse").mkdir(parents=True)
+    import shutil
+    from PIL import Image
+    shutil.copytree(out / "sparse", ds / "sparse" / "0")
+    (ds / "images").mkdir()
+    for im in rec.images.values():
+        Image.new("RGB", (192, 144), (90, 90, 90)).save(ds / "images" / im.name)
+    out2 = tmp_path / "out2"
+    assert cli_main(["sfm", str(ds), "--out", str(out2), "--reuse", "--quiet"]) == 0
+    rep2 = json.loads((out2 / "report.json").read_text())
+    assert rep2["reused_model"] and rep2["points"] == rep["points"]
+    assert cli_main(["sfm", str(bag), "--out", str(out2), "--reuse", "--quiet"]) == 1
+
+
+def test_cli_missing_input_is_a_clean_error(tmp_path, capsys):
+    assert cli_main(["sfm", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 1
+    assert "does not exist" in capsys.readouterr().err
