@@ -254,6 +254,7 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
     infos: list[tuple[int, CameraIntrinsics]] = []
     masks: dict[int, np.ndarray] = {}
     gt_points = None
+    info_error = ""
     dropped: Counter = Counter()
     for topic, ty, _t, data in reader.messages(topics=want):
         msg = reader.decode(ty, data, topic)
@@ -263,8 +264,12 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
                    else msgconv.compressed_to_rgb(msg))
             images.append((stamp, rgb))
         elif topic == info_topic:
-            infos.append((msgconv.stamp_to_ns(msg.header.stamp),
-                          msgconv.camera_info_to_intrinsics(msg)))
+            try:
+                infos.append((msgconv.stamp_to_ns(msg.header.stamp),
+                              msgconv.camera_info_to_intrinsics(msg)))
+            except InputError as exc:
+                dropped["invalid_camera_info"] += 1
+                info_error = str(exc)
         elif topic == pose_topic:
             try:
                 if pose_type == "nav_msgs/msg/Odometry":
@@ -282,6 +287,8 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
     if not images:
         raise InputError(f"bag {path} has no messages on {image_topic}")
     if not infos:
+        if info_error:
+            raise InputError(f"bag {path}: no usable camera_info on {info_topic}: {info_error}")
         raise InputError(f"bag {path} has no messages on {info_topic}; record the camera_info "
                          "topic with the images")
     images.sort(key=lambda x: x[0])

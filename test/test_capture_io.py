@@ -307,3 +307,25 @@ def test_capture_bag_decodes_from_embedded_definitions(tmp_path):
             if ch.topic == "/camera/camera_info":
                 assert dec.distortion_model == "plumb_bob" and list(dec.k)[0] == 30.0
     assert n == 2 * 4 + 1
+
+
+def test_bad_camera_info_dropped_or_fatal(tmp_path):
+    cam = CameraIntrinsics(8, 6, 5, 5, 3.5, 2.5)
+    for n_good, expect in ((1, None), (0, "all zeros")):
+        p = tmp_path / f"ci{n_good}.mcap"
+        with BagWriter(p) as w:
+            for i in range(3):
+                t = T0 + i * MS
+                info = msgconv.intrinsics_to_camera_info(cam, t)
+                if i >= n_good:
+                    info.k = [0.0] * 9
+                w.write("/camera/camera_info", info, t)
+                w.write("/camera/image_raw", msgconv.rgb_to_image(
+                    np.zeros((6, 8, 3), np.uint8), t), t)
+        if expect is None:
+            cap = capture_io.read_capture(p)
+            assert len(cap) == 3 and cap.meta["dropped"] == {"invalid_camera_info": 2}
+            assert "no poses" in cap.meta["note"] and cap.views[0].pose is None
+        else:
+            with pytest.raises(InputError, match=expect):
+                capture_io.read_capture(p)
