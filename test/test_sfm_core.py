@@ -102,8 +102,8 @@ def _distort(x, y, model, d):
     k = np.zeros(8)
     k[:len(d)] = d
     r2 = x * x + y * y
-    rad = (1 + k[0] * r2 + k[1] * r2**2 + k[4] * r2**3) / (1 + k[5] * r2 + k[6] * r2**2
-                                                          + k[7] * r2**3)
+    num = 1 + k[0] * r2 + k[1] * r2**2 + k[4] * r2**3
+    rad = num / (1 + k[5] * r2 + k[6] * r2**2 + k[7] * r2**3)
     return (x * rad + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x),
             y * rad + k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y)
 

@@ -22,7 +22,7 @@ from typing import Optional
 import numpy as np
 
 from ..core.geometry import cameras_convergence_point
-from ..core.types import CameraIntrinsics, InputError, Pose, SfmCloud, View
+from ..core.types import CameraIntrinsics, InputError, SfmCloud, View
 
 LOG = logging.getLogger(__name__)
 
