@@ -119,9 +119,7 @@ class BagWriter:
                  ros_distro: str = "jazzy") -> None:
         from mcap.writer import CompressionType, Writer
 
-        self.path = Path(path)
-        if self.path.suffix != ".mcap":
-            self.path = self.path.with_name(self.path.name + ".mcap")
+        self.path = Path(path)  # written as given (name it *.mcap for other tools)
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE, "": CompressionType.NONE}.get(compression)
         if comp is None:
