@@ -537,8 +537,6 @@ def write_capture_folder(capture: Capture, out: PathLike) -> Path:
     Written into ``<out>.part`` and renamed when complete; an existing ``out`` is replaced only
     if it is a capture folder (has transforms.json).
     """
-    from PIL import Image
-
     out = Path(out)
     if not capture.views:
         raise InputError("the capture has no views to write")
@@ -547,9 +545,27 @@ def write_capture_folder(capture: Capture, out: PathLike) -> Path:
     keys = [v.key for v in capture.views]
     if len(set(keys)) != len(keys):
         raise InputError("view keys are not unique; they name the image files")
+    bad = [k for k in keys if not k or "/" in k or "\\" in k or k in (".", "..")]
+    if bad:
+        raise InputError(f"view key {bad[0]!r} cannot be a file name; rename the views")
     tmp = out.with_name(out.name + ".part")
     if tmp.exists():
         shutil.rmtree(tmp)
+    try:
+        _write_folder_contents(capture, tmp)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if out.exists():
+        shutil.rmtree(out)
+    os.replace(tmp, out)
+    return out
+
+
+def _write_folder_contents(capture: Capture, tmp: Path) -> None:
+    """Everything ``write_capture_folder`` writes, into ``tmp``."""
+    from PIL import Image
+
     (tmp / "images").mkdir(parents=True)
     cams = [_ns_camera_dict(v.camera) for v in capture.views]
     shared = all(c == cams[0] for c in cams)
@@ -560,7 +576,11 @@ def write_capture_folder(capture: Capture, out: PathLike) -> Path:
         (tmp / "masks").mkdir()
     for v, c in zip(capture.views, cams):
         fr: dict = {"file_path": f"images/{v.key}.png", "stamp_ns": int(v.stamp_ns)}
-        Image.fromarray(v.get_image()).save(tmp / fr["file_path"], compress_level=6)
+        img = v.get_image()
+        if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+            raise InputError(f"view {v.key}: image is {img.dtype} {img.shape}, expected uint8 "
+                             "[H, W, 3] RGB")
+        Image.fromarray(img).save(tmp / fr["file_path"], compress_level=6)
         if v.pose is not None:
             fr["transform_matrix"] = pose_to_gl_c2w(v.pose).tolist()
         if v.gt_mask is not None:
@@ -575,10 +595,6 @@ def write_capture_folder(capture: Capture, out: PathLike) -> Path:
         data["ooi_points_path"] = "ooi_points.ply"
     data["ooi_seg_meta"] = _json_safe(capture.meta)
     (tmp / "transforms.json").write_text(json.dumps(data, indent=2, sort_keys=False))
-    if out.exists():
-        shutil.rmtree(out)
-    os.replace(tmp, out)
-    return out
 
 
 # ============================================================================ images

@@ -186,7 +186,18 @@ def test_failed_write_leaves_nothing(tmp_path):
     cap.views[2].image = cap.views[2].image.astype(np.float32)  # cannot become rgb8
     with pytest.raises(InputError):
         capture_io.write_capture_bag(cap, tmp_path / "x.mcap")
+    with pytest.raises(InputError, match="uint8"):
+        capture_io.write_capture_folder(cap, tmp_path / "x")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_folder_write_is_deterministic(tmp_path):
+    cap = _capture()
+    a = capture_io.write_capture_folder(cap, tmp_path / "a")
+    b = capture_io.write_capture_folder(cap, tmp_path / "b")
+    fa = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert fa == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    assert all((a / f).read_bytes() == (b / f).read_bytes() for f in fa)
 
 
 def test_nerfstudio_folder_from_elsewhere(tmp_path):
