@@ -1,0 +1,94 @@
+"""Benchmark: incremental known-pose SfM vs the batch pycolmap triangulation of the same keyframes.
+
+For each simulator capture (scene, views, size) both paths see the same keyframes (every view).
+Printed side by side: keyframes per second through extraction + matching + triangulation,
+seconds per keyframe (worst), points, mean track length, and the median distance of the points to
+the true surface as a fraction of the object size (the simulator's ``scale``). ``inc_t3`` is the
+incremental cloud restricted to tracks of 3+ keyframes (what its accuracy is at equal support).
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_sfm.py \
+        --cases aircraft:60:320x240 tabletop:60:320x240
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def run_case(scene: str, n_views: int, w: int, h: int, seed: int) -> dict:
+    from ooi_seg_ros.sfm.batch import batch_triangulate
+    from ooi_seg_ros.sfm.incremental import IncrementalSfM
+    from ooi_seg_ros.sim import simulate_capture
+
+    t0 = time.perf_counter()
+    sim = simulate_capture(scene, n_views=n_views, width=w, height=h, seed=seed)
+    t_render = time.perf_counter() - t0
+    views = sim.capture.views
+    scale = sim.scene.summary()["scale"]
+
+    def acc(xyz):
+        d = np.abs(sim.scene.distance_to_surface(xyz))
+        return float(np.median(d) / scale), float(np.mean(d < 0.01 * scale))
+
+    sfm = IncrementalSfM()
+    per_kf = []
+    t0 = time.perf_counter()
+    for v in views:
+        t1 = time.perf_counter()
+        sfm.add_keyframe(v)
+        sfm.cloud()  # the cloud is current after every keyframe (what the live node does)
+        per_kf.append(time.perf_counter() - t1)
+    cloud = sfm.cloud()
+    t_inc = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    bcloud, _ = batch_triangulate(views)
+    t_batch = time.perf_counter() - t0
+    inc_acc, bat_acc = acc(cloud.xyz), acc(bcloud.xyz)
+    long = cloud.subset(cloud.track_lengths() >= 3)
+    long_acc = acc(long.xyz)
+    return {"case": f"{scene} {n_views}x {w}x{h}", "render_s": t_render,
+            "inc": {"kf_per_s": len(views) / t_inc, "max_s_per_kf": max(per_kf),
+                    "points": len(cloud), "track": float(cloud.track_lengths().mean()),
+                    "med_dist_frac": inc_acc[0], "within_1pct": inc_acc[1]},
+            "inc_t3": {"kf_per_s": len(views) / t_inc, "max_s_per_kf": max(per_kf),
+                       "points": len(long), "track": float(long.track_lengths().mean()),
+                       "med_dist_frac": long_acc[0], "within_1pct": long_acc[1]},
+            "batch": {"kf_per_s": len(views) / t_batch, "max_s_per_kf": float("nan"),
+                      "points": len(bcloud), "track": float(bcloud.track_lengths().mean()),
+                      "med_dist_frac": bat_acc[0], "within_1pct": bat_acc[1]}}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", nargs="+", default=["aircraft:60:320x240", "tabletop:60:320x240"],
+                    help="SCENE:VIEWS:WxH")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    rows = []
+    for c in args.cases:
+        scene, n, size = c.split(":")
+        w, h = (int(x) for x in size.split("x"))
+        r = run_case(scene, int(n), w, h, args.seed)
+        rows.append(r)
+        print(f"done {r['case']} (render {r['render_s']:.0f}s)", flush=True)
+    hdr = (f"{'case':26s} {'path':6s} {'kf/s':>6s} {'max s/kf':>8s} {'points':>7s} "
+           f"{'track':>6s} {'med dist/size':>13s} {'<1% size':>8s}")
+    print(hdr)
+    for r in rows:
+        for path in ("inc", "inc_t3", "batch"):
+            m = r[path]
+            print(f"{r['case']:26s} {path:6s} {m['kf_per_s']:6.2f} {m['max_s_per_kf']:8.2f} "
+                  f"{m['points']:7d} {m['track']:6.2f} {m['med_dist_frac']:13.5f} "
+                  f"{m['within_1pct']:8.3f}")
+        print(f"{'':26s} inc/batch points {r['inc']['points'] / max(r['batch']['points'], 1):.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
