@@ -286,9 +286,14 @@ def pointcloud2_to_fields(msg: PointCloud2,
     step = int(msg.point_step)
     data = msg.data
     buf = data.tobytes() if hasattr(data, "tobytes") else bytes(data)
-    if n and len(buf) < n * step:
-        raise InputError(f"point cloud data has {len(buf)} bytes, expected {n} x {step}; "
-                         "the message is truncated")
+    row = int(msg.width) * step
+    if n and (int(msg.row_step) < row or len(buf) < int(msg.row_step) * int(msg.height)):
+        raise InputError(f"point cloud data has {len(buf)} bytes for {msg.height} rows of "
+                         f"row_step {msg.row_step} ({msg.width} x {step} bytes); the message is "
+                         "truncated or its size fields are wrong")
+    if n and int(msg.row_step) != row:  # organised cloud with row padding
+        rows = np.frombuffer(buf, np.uint8, count=int(msg.row_step) * int(msg.height))
+        buf = rows.reshape(int(msg.height), int(msg.row_step))[:, :row].tobytes()
     endian = ">" if msg.is_bigendian else "<"
     out: dict[str, np.ndarray] = {}
     have = {f.name: f for f in msg.fields}

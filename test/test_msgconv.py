@@ -177,3 +177,17 @@ def test_mesh_marker():
     assert isinstance(m, Marker) and m.type == Marker.TRIANGLE_LIST and len(m.points) == 6
     back = msgconv.marker_to_mesh(m)
     assert np.allclose(back.vertices[back.triangles[1]], mesh.vertices[mesh.triangles[1]])
+
+
+def test_organised_cloud_with_row_padding_and_truncation():
+    xyz = np.arange(12, dtype=float).reshape(4, 3)
+    flat = msgconv.xyzrgb_to_pointcloud2(xyz, None, 0)
+    org = msgconv.xyzrgb_to_pointcloud2(xyz, None, 0)
+    org.height, org.width, org.row_step = 2, 2, 2 * 12 + 4
+    raw = bytes(flat.data)
+    org.data = raw[:24] + b"\x00" * 4 + raw[24:] + b"\x00" * 4
+    got, _ = msgconv.pointcloud2_to_xyzrgb(_cdr(org))
+    assert np.array_equal(got, xyz)
+    flat.data = raw[:-3]
+    with pytest.raises(InputError, match="truncated"):
+        msgconv.pointcloud2_to_xyzrgb(flat)
