@@ -27,9 +27,11 @@ from ..core.types import CameraIntrinsics, Pose, TriMesh, View
 class MaskConfig:
     """Options of the mask-rendering stage."""
 
-    mode: str = "mesh"  # "mesh" (ray-cast the mesh) | "points" (splat the OOI points)
+    mode: str = "mesh"  # "mesh" (ray-cast) | "points" (disc splats) | "alpha" (2D alpha shapes)
+    alpha_scale: float = 2.0  # alpha mode: max triangle edge in units of its vertices' k-NN dist
     closing_kernel: int = 5  # side of the square structuring element of the closing (px)
-    fill_holes: bool = False  # fill enclosed holes after the closing
+    fill_holes: bool = False  # fill enclosed holes after the closing (see hole_max_fraction)
+    hole_max_fraction: float = 0.02  # only holes smaller than this x the mask area are filled
     splat_scale: float = 1.0  # points mode: disc radius in units of the point's k-NN distance
     splat_k: int = 4  # points mode: neighbour rank that defines a point's spacing
     max_splat_px: int = 40  # points mode: cap on a disc's radius in pixels
@@ -86,8 +88,21 @@ def _finish(mask: np.ndarray, cfg: MaskConfig) -> np.ndarray:
         m = ndimage.binary_closing(m, structure=np.ones((k, k), bool))
         mask = m[pad:-pad, pad:-pad]
     if cfg.fill_holes and mask.any():
-        mask = ndimage.binary_fill_holes(mask)
+        mask = fill_small_holes(mask, cfg.hole_max_fraction)
     return mask
+
+
+def fill_small_holes(mask: np.ndarray, max_fraction: float) -> np.ndarray:
+    """Fill enclosed holes smaller than ``max_fraction`` x the mask's area (gaps between
+    sparse points), keeping large ones (a wheel, the gap under a handle)."""
+    holes = ndimage.binary_fill_holes(mask) & ~mask
+    if not holes.any():
+        return mask
+    lab, n = ndimage.label(holes)
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    small = sizes <= max_fraction * mask.sum()
+    small[0] = False
+    return mask | small[lab]
 
 
 def mesh_masks(mesh: TriMesh, views: list[View], cfg: MaskConfig) -> dict[str, np.ndarray]:
@@ -141,6 +156,45 @@ def _splat(uv: np.ndarray, rad: np.ndarray, h: int, w: int) -> np.ndarray:
         d = ndimage.distance_transform_edt(seeds)
         mask |= (d <= r)[pad:pad + h, pad:pad + w]
     return mask
+
+
+def alpha_masks(xyz: np.ndarray, radii: np.ndarray, views: list[View], cfg: MaskConfig
+                ) -> dict[str, np.ndarray]:
+    """Per-view 2D alpha shapes of the projected points: {view.key: bool [H,W]}.
+
+    The projected points are Delaunay-triangulated in the image; a triangle is filled when its
+    longest edge is at most ``alpha_scale`` x the largest local spacing of its three vertices
+    (world k-NN distance seen at the vertices' depth). Sparse but contiguous surfaces (a pot
+    with few features) are filled; gaps wider than the local spacing (wheels) stay open.
+    Point discs are drawn too, so isolated points still count.
+    """
+    from scipy.spatial import Delaunay
+    from scipy.spatial import QhullError
+    from PIL import Image, ImageDraw
+    out = {}
+    for v in views:
+        c = v.camera
+        uv, z = project_distorted(xyz, c, v.pose)
+        ok = (z > 1e-9) & np.isfinite(uv).all(1)
+        uv_ok, rpx = uv[ok], radii[ok] * c.fx / z[ok]
+        m = _splat(uv_ok, np.clip(rpx, 0.5, cfg.max_splat_px), c.height, c.width)
+        if len(uv_ok) >= 3:
+            try:
+                tri = Delaunay(uv_ok).simplices
+            except QhullError:
+                tri = np.zeros((0, 3), int)
+            p = uv_ok[tri]  # [T,3,2]
+            e = np.linalg.norm(p - p[:, [1, 2, 0]], axis=2).max(axis=1)
+            lim = cfg.alpha_scale * rpx[tri].max(axis=1)
+            good = p[e <= np.minimum(lim, 4 * cfg.max_splat_px)]
+            if len(good):
+                img = Image.new("1", (c.width, c.height), 0)
+                draw = ImageDraw.Draw(img)
+                for t in good:
+                    draw.polygon([tuple(q) for q in t], fill=1)
+                m |= np.asarray(img, bool)
+        out[v.key] = _finish(m, cfg)
+    return out
 
 
 def point_radii(xyz: np.ndarray, k: int, scale: float) -> np.ndarray:
@@ -206,8 +260,12 @@ def render_masks(views: list[View], cfg: MaskConfig, mesh: TriMesh, xyz: np.ndar
         radii = point_radii(xyz, cfg.splat_k, cfg.splat_scale)
         params["median_radius"] = float(np.median(radii)) if len(radii) else 0.0
         masks = point_masks(xyz, radii, views, cfg)
+    elif cfg.mode == "alpha":
+        radii = point_radii(xyz, cfg.splat_k, cfg.splat_scale)
+        params["median_radius"] = float(np.median(radii)) if len(radii) else 0.0
+        masks = alpha_masks(xyz, radii, views, cfg)
     else:
-        raise ValueError(f"masks.mode={cfg.mode!r}; use mesh or points")
+        raise ValueError(f"masks.mode={cfg.mode!r}; use mesh, points or alpha")
     if cfg.hull_consistency:
         masks, p = hull_refine(masks, views, xyz, cfg)
         params["hull"] = p

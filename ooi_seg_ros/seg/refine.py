@@ -17,6 +17,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..core.types import SfmCloud, View
+from .masks import fill_small_holes
 
 
 @dataclass
@@ -27,8 +28,9 @@ class RefineConfig:
     iterations: int = 4  # GrabCut iterations per view
     band_fraction: float = 0.15  # "probably background" band width, fraction of the mask size
     seed_radius: int = 1  # radius in px of the sure seeds drawn at observations
-    max_side: int = 400  # crops larger than this are refined at reduced resolution
+    max_side: int = 256  # crops larger than this are refined at reduced resolution
     max_area_change: float = 0.5  # reject results that grow/shrink the mask by more than this
+    hole_max_fraction: float = 0.02  # fill holes smaller than this x the mask area
     seed: int = 0  # seed of OpenCV's RNG (GrabCut's colour-model initialisation)
 
 
@@ -113,7 +115,7 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         if scale < 1.0:
             res = cv2.resize(res.astype(np.uint8), (crop.shape[1], crop.shape[0]),
                              interpolation=cv2.INTER_NEAREST).astype(bool)
-        res = ndimage.binary_fill_holes(ndimage.binary_opening(res, iterations=1))
+        res = fill_small_holes(ndimage.binary_opening(res, iterations=1), cfg.hole_max_fraction)
         a0, a1 = crop.sum(), res.sum()
         if abs(a1 - a0) > cfg.max_area_change * a0:
             rejected += 1
