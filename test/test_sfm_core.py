@@ -235,3 +235,14 @@ def test_cli_on_a_bag_and_reuse_of_a_colmap_folder(tmp_path, capsys):
 def test_cli_missing_input_is_a_clean_error(tmp_path, capsys):
     assert cli_main(["sfm", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 1
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_bundle_adjustment_of_points_keeps_the_cloud_consistent(built):
+    from ooi_seg_ros.sfm.ba import bundle_adjust
+    _, _, cloud = built
+    ba, st = bundle_adjust(cloud, refine_poses=False)
+    assert len(ba) == len(cloud)
+    assert st["mean_reprojection_px_after"] <= st["mean_reprojection_px_before"] + 1e-9
+    # the Gauss-Newton refinement of the incremental path already sits at the BA optimum
+    assert np.median(np.linalg.norm(ba.xyz - cloud.xyz, axis=1)) < 1e-3
+    np.testing.assert_array_equal(ba.obs_view, cloud.obs_view)
