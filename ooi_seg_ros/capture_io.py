@@ -47,12 +47,13 @@ PathLike = Union[str, Path]
 # ============================================================================ dispatch
 def read_capture(path: PathLike, *, downscale: float = 1.0, image_topic: Optional[str] = None,
                  info_topic: Optional[str] = None, pose_topic: Optional[str] = None,
-                 pose_tolerance_ns: Optional[int] = None, mount: Optional[Pose] = None
-                 ) -> Capture:
+                 pose_tolerance_ns: Optional[int] = None, mount: Optional[Pose] = None,
+                 lazy_images: bool = False) -> Capture:
     """A ``Capture`` of a bag, COLMAP dataset, nerfstudio folder or plain image folder."""
     cap, _ = read_capture_and_cloud(path, downscale=downscale, image_topic=image_topic,
                                     info_topic=info_topic, pose_topic=pose_topic,
-                                    pose_tolerance_ns=pose_tolerance_ns, mount=mount)
+                                    pose_tolerance_ns=pose_tolerance_ns, mount=mount,
+                                    lazy_images=lazy_images)
     return cap
 
 
@@ -84,9 +85,12 @@ def input_kind(path: PathLike) -> str:
 def read_capture_and_cloud(path: PathLike, *, downscale: float = 1.0,
                            image_topic: Optional[str] = None, info_topic: Optional[str] = None,
                            pose_topic: Optional[str] = None,
-                           pose_tolerance_ns: Optional[int] = None, mount: Optional[Pose] = None
-                           ) -> tuple[Capture, Optional[SfmCloud]]:
-    """(Capture, SfmCloud or None): the cloud comes with COLMAP datasets only."""
+                           pose_tolerance_ns: Optional[int] = None, mount: Optional[Pose] = None,
+                           lazy_images: bool = False) -> tuple[Capture, Optional[SfmCloud]]:
+    """(Capture, SfmCloud or None): the cloud comes with COLMAP datasets only.
+
+    Folder inputs always load images lazily; bags only with ``lazy_images``.
+    """
     if not (downscale >= 1.0 and np.isfinite(downscale)):
         raise InputError(f"downscale {downscale} must be >= 1 (2 = half resolution)")
     p = Path(path)
@@ -96,7 +100,8 @@ def read_capture_and_cloud(path: PathLike, *, downscale: float = 1.0,
     if kind == "bag":
         return read_bag_capture(p, downscale=downscale, image_topic=image_topic,
                                 info_topic=info_topic, pose_topic=pose_topic,
-                                pose_tolerance_ns=pose_tolerance_ns, mount=mount), None
+                                pose_tolerance_ns=pose_tolerance_ns, mount=mount,
+                                lazy_images=lazy_images), None
     if kind == "colmap":
         return read_colmap_dataset(p, downscale=downscale)
     if kind == "nerfstudio":
@@ -219,8 +224,13 @@ def _json_safe(obj):
 def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
                      image_topic: Optional[str] = None, info_topic: Optional[str] = None,
                      pose_topic: Optional[str] = None, pose_tolerance_ns: Optional[int] = None,
-                     mount: Optional[Pose] = None) -> Capture:
-    """A Capture from a capture bag (see the module doc for topics)."""
+                     mount: Optional[Pose] = None, lazy_images: bool = False) -> Capture:
+    """A Capture from a capture bag (see the module doc for topics).
+
+    ``lazy_images`` keeps only image stamps and sizes in memory (every image is still decoded
+    and validated once here); ``View.get_image()`` then reads its message from the bag again.
+    Ignored for a damaged bag, which can only be read front to back.
+    """
     from . import msgconv
     from .bag import BagReader
 
@@ -249,20 +259,20 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
                          "Odometry")
     want = [image_topic, info_topic] + [t for t in (pose_topic, GT_MASK_TOPIC, GT_POINTS_TOPIC)
                                         if t and t in topics]
-    images: list[tuple[int, np.ndarray]] = []
+    images: list[tuple[int, Optional[np.ndarray], tuple[int, int], int]] = []
     poses: list[tuple[int, Pose]] = []
     infos: list[tuple[int, CameraIntrinsics]] = []
     masks: dict[int, np.ndarray] = {}
     gt_points = None
     info_error = ""
     dropped: Counter = Counter()
-    for topic, ty, _t, data in reader.messages(topics=want):
+    lazy = lazy_images and not reader.truncated
+    for topic, ty, log_t, data in reader.messages(topics=want):
         msg = reader.decode(ty, data, topic)
         if topic == image_topic:
             stamp = msgconv.stamp_to_ns(msg.header.stamp)
-            rgb = (msgconv.image_to_rgb(msg) if ty.endswith("/Image")
-                   else msgconv.compressed_to_rgb(msg))
-            images.append((stamp, rgb))
+            rgb = _bag_image_rgb(msg, ty)
+            images.append((stamp, None if lazy else rgb, rgb.shape[:2], log_t))
         elif topic == info_topic:
             try:
                 infos.append((msgconv.stamp_to_ns(msg.header.stamp),
@@ -310,7 +320,7 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
         dropped[f"pose_{reason}"] += n
     views: list[View] = []
     seen: set[int] = set()
-    for stamp, rgb in images:
+    for stamp, rgb, (h, w), log_t in images:
         if stamp in seen:
             dropped["duplicate_image_stamp"] += 1
             continue
@@ -320,20 +330,22 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
             dropped["no_pose_within_tolerance"] += 1
             continue
         cam = infos[int(np.argmin(np.abs(info_stamps - stamp)))][1]
-        if (rgb.shape[1], rgb.shape[0]) != (cam.width, cam.height):
+        if (w, h) != (cam.width, cam.height):
             dropped["size_differs_from_camera_info"] += 1
             continue
         mask = masks.get(stamp)
-        if mask is not None and mask.shape != rgb.shape[:2]:
+        if mask is not None and mask.shape != (h, w):
             raise InputError(f"ground-truth mask at {stamp} is {mask.shape[1]}x{mask.shape[0]}, "
-                             f"its image {rgb.shape[1]}x{rgb.shape[0]}; re-export the masks")
+                             f"its image {w}x{h}; re-export the masks")
         if downscale != 1.0:
             cam = cam.scaled(1.0 / downscale)
             size = (cam.width, cam.height)
-            rgb = _resize_rgb(rgb, size)
+            rgb = _resize_rgb(rgb, size) if rgb is not None else None
             mask = _resize_mask(mask, size) if mask is not None else None
+        loader = (_bag_image_loader(reader, image_topic, stamp, log_t, (cam.width, cam.height))
+                  if rgb is None else None)
         views.append(View(key=str(stamp), stamp_ns=stamp, camera=cam, pose=pose, image=rgb,
-                          gt_mask=mask, source=f"{path}:{image_topic}"))
+                          gt_mask=mask, loader=loader, source=f"{path}:{image_topic}"))
     if dropped:
         log.warning("read_capture %s: dropped %s", path, dict(dropped))
     if not views:
@@ -352,6 +364,26 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
     if not pose_topic:
         meta["note"] = "the bag has no pose topic: views have no poses (SfM must estimate them)"
     return Capture(views=views, source=str(path), gt_ooi_points=gt_points, meta=meta)
+
+
+def _bag_image_rgb(msg, type_name: str) -> np.ndarray:
+    from . import msgconv
+    return (msgconv.image_to_rgb(msg) if type_name.endswith("/Image")
+            else msgconv.compressed_to_rgb(msg))
+
+
+def _bag_image_loader(reader, topic: str, stamp: int, log_t: int, size: tuple[int, int]):
+    """Loader that reads the image with header stamp ``stamp`` logged at ``log_t`` again."""
+    from . import msgconv
+
+    def load() -> np.ndarray:
+        for _t, ty, _lt, data in reader.messages(topics=[topic], start_ns=log_t,
+                                                 end_ns=log_t + 1):
+            msg = reader.decode(ty, data, topic)
+            if msgconv.stamp_to_ns(msg.header.stamp) == stamp:
+                return _resize_rgb(_bag_image_rgb(msg, ty), size)
+        raise InputError(f"image {stamp} is no longer in {reader.path}; was the bag changed?")
+    return load
 
 
 def write_capture_bag(capture: Capture, path: PathLike, compressed: bool = False) -> Path:

@@ -340,3 +340,16 @@ def test_bad_camera_info_dropped_or_fatal(tmp_path):
         else:
             with pytest.raises(InputError, match=expect):
                 capture_io.read_capture(p)
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_lazy_bag_images_equal_eager(tmp_path, compressed):
+    cap = _capture(n=5)
+    p = capture_io.write_capture_bag(cap, tmp_path / "l.mcap", compressed=compressed)
+    lazy = capture_io.read_capture(p, lazy_images=True)
+    assert all(v.image is None and v.loader is not None for v in lazy.views)
+    _same(cap, lazy)
+    half = capture_io.read_capture(p, lazy_images=True, downscale=2)
+    eager = capture_io.read_capture(p, downscale=2)
+    for a, b in zip(half.views, eager.views):
+        assert np.array_equal(a.get_image(), b.get_image())
