@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from ..core.types import Capture, InputError, SfmCloud
+from ..core.types import CameraIntrinsics, Capture, InputError, SfmCloud
 from .colmap_io import load_colmap_model
 
 LOG = logging.getLogger(__name__)
@@ -41,8 +41,12 @@ def _progress(msg: str) -> None:
 
 
 def map_image_folder(images_dir: str | Path, work_dir: str | Path,
-                     config: Optional[MappingConfig] = None) -> tuple[Capture, SfmCloud, dict]:
+                     config: Optional[MappingConfig] = None,
+                     camera: Optional[CameraIntrinsics] = None) -> tuple[Capture, SfmCloud, dict]:
     """Reconstruct the photos in ``images_dir`` without poses.
+
+    ``camera``: calibrated intrinsics shared by all photos (e.g. from CameraInfo); they are
+    then held fixed instead of estimated from a focal-length guess.
 
     Writes ``work_dir/database.db`` and ``work_dir/sparse/<k>`` and returns (Capture with the
     registered views and estimated poses, SfmCloud, stats with times per step).
@@ -74,6 +78,13 @@ def map_image_folder(images_dir: str | Path, work_dir: str | Path,
     ext.sift.max_num_features = cfg.max_num_features
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "OPENCV"
+    if camera is not None:
+        from .export import camera_to_colmap
+        camera.validate()
+        model_id, params = camera_to_colmap(camera)
+        reader.camera_model = {1: "PINHOLE", 4: "OPENCV", 5: "OPENCV_FISHEYE",
+                               6: "FULL_OPENCV"}[model_id]
+        reader.camera_params = ",".join(f"{p:.10g}" for p in params)
     pycolmap.extract_features(db, images_dir, image_names=names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=ext, device=pycolmap.Device.cpu)
@@ -101,6 +112,10 @@ def map_image_folder(images_dir: str | Path, work_dir: str | Path,
     _progress("incremental mapping")
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = cfg.num_threads
+    if camera is not None:
+        opts.ba_refine_focal_length = False
+        opts.ba_refine_principal_point = False
+        opts.ba_refine_extra_params = False
     sparse = work_dir / "sparse"
     sparse.mkdir(exist_ok=True)
     recs = pycolmap.incremental_mapping(db, images_dir, sparse, options=opts)

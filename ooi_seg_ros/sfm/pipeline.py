@@ -145,7 +145,11 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
             Image.fromarray(v.get_image()).save(images_dir / f"{v.key}.png")
     work = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="sfm_map_"))
     try:
-        cap, cloud, stats = map_image_folder(images_dir, work, cfg.mapping)
+        # intrinsics of images that came from a stream/dataset (CameraInfo) are calibrated
+        cams = {(v.camera.width, v.camera.height, v.camera.fx, v.camera.fy, v.camera.cx,
+                 v.camera.cy) for v in capture.views}
+        calibrated = capture.views[0].camera if tmp is not None and len(cams) == 1 else None
+        cap, cloud, stats = map_image_folder(images_dir, work, cfg.mapping, camera=calibrated)
         if tmp is not None:  # load the images before their temporary folder goes
             for v in cap.views:
                 v.get_image()

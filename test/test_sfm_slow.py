@@ -1,0 +1,53 @@
+"""SfM through pycolmap's own pipelines (slower): batch triangulation, pose-free mapping."""
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from ooi_seg_ros.core.types import InputError
+from ooi_seg_ros.sfm.batch import batch_triangulate
+from ooi_seg_ros.sfm.mapping import MappingConfig, map_image_folder
+from ooi_seg_ros.sim import simulate_capture
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate_capture("aircraft", n_views=14, width=256, height=192, seed=2)
+
+
+@pytest.mark.slow
+def test_batch_triangulation_baseline_is_accurate(sim):
+    cloud, stats = batch_triangulate(sim.capture.views)
+    assert stats["points"] == len(cloud) > 50
+    d = np.abs(sim.scene.distance_to_surface(cloud.xyz))
+    assert np.median(d) < 0.005 * sim.scene.summary()["scale"]
+    assert cloud.track_lengths().min() >= 2 and len(cloud.views) == 14
+
+
+@pytest.mark.slow
+def test_mapping_without_poses_registers_the_photos(tmp_path):
+    sim = simulate_capture("tabletop", n_views=30, width=256, height=192, seed=2)
+    img_dir = tmp_path / "images"
+    img_dir.mkdir()
+    for k, v in enumerate(sim.capture.views):
+        Image.fromarray(v.image).save(img_dir / f"{k:03d}.png")
+    cap, cloud, stats = map_image_folder(img_dir, tmp_path / "work",
+                                         MappingConfig(num_threads=1),
+                                         camera=sim.capture.views[0].camera)
+    assert stats["registered_images"] >= 27
+    assert len(cloud) > 50 and len(cap.views) == stats["registered_images"]
+    assert all(v.pose is not None for v in cap.views)
+    # the estimated camera centres match the true ones up to a similarity
+    from ooi_seg_ros.sfm.ba import umeyama
+    true = {f"{k:03d}": v.pose.t for k, v in enumerate(sim.capture.views)}
+    est = np.stack([v.pose.t for v in cap.views])
+    ref = np.stack([true[v.key] for v in cap.views])
+    s, R, t = umeyama(est, ref)
+    err = np.linalg.norm(s * est @ R.T + t - ref, axis=1)
+    radius = np.median(np.linalg.norm(ref - ref.mean(0), axis=1))
+    assert np.median(err) < 0.02 * radius
+
+
+def test_mapping_rejects_a_folder_without_photos(tmp_path):
+    with pytest.raises(InputError, match="at least 2"):
+        map_image_folder(tmp_path, tmp_path / "work")
