@@ -75,7 +75,7 @@ def _composite(pix: torch.Tensor, m2: torch.Tensor, con: torch.Tensor, op: torch
 
 def render(model: GaussianModel, cam: RasterCamera, background: torch.Tensor,
            sh_degree: Optional[int] = None, max_batch_elems: int = 1 << 22,
-           checkpoint_above: int = 1 << 23) -> RenderOutput:
+           checkpoint_above: int = 1 << 25) -> RenderOutput:
     """Render ``model`` from ``cam`` composited over ``background`` [3] (differentiable).
 
     ``max_batch_elems`` bounds tiles x Gaussians x pixels of one dense batch; when the whole
@@ -88,7 +88,7 @@ def render(model: GaussianModel, cam: RasterCamera, background: torch.Tensor,
 
 
 def rasterize(pr: Projected, cam: RasterCamera, background: torch.Tensor,
-              max_batch_elems: int = 1 << 22, checkpoint_above: int = 1 << 23) -> RenderOutput:
+              max_batch_elems: int = 1 << 22, checkpoint_above: int = 1 << 25) -> RenderOutput:
     """Tile rasterisation of already projected Gaussians (shared with other back-ends' tests)."""
     H, W = cam.height, cam.width
     tx, ty = (W + TILE - 1) // TILE, (H + TILE - 1) // TILE
@@ -114,11 +114,16 @@ def rasterize(pr: Projected, cam: RasterCamera, background: torch.Tensor,
     colors, accs, ids = [], [], []
     i = 0
     n_occ = len(occupied)
+    cnt_list = counts[occupied].tolist()
     while i < n_occ:
         # grow the batch while the padded size stays within budget (counts ascend)
         j = i + 1
-        while j < n_occ and (j + 1 - i) * int(counts[occupied[j]]) * TILE * TILE \
-                <= max_batch_elems:
+        c0 = cnt_list[i]
+        while j < n_occ:
+            cj = int(cnt_list[j])
+            # stop at the memory budget, or when padding would waste more than ~25%
+            if (j + 1 - i) * cj * TILE * TILE > max_batch_elems or cj > 1.25 * c0 + 8:
+                break
             j += 1
         tiles = occupied[i:j]
         k = int(counts[tiles].max())

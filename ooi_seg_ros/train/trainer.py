@@ -1,0 +1,468 @@
+"""Object-only Gaussian splat training (paper 4.6) on the CPU (or gsplat on CUDA).
+
+Inputs: a Capture (images + camera-to-world poses), one boolean object mask per view key, and
+the OOI point cloud for initialisation. Loss only on object pixels, renders over a random
+background colour each step (so Gaussians cannot stand in for background), MCMC densification
+under a hard cap with mask-aware relocation. Every 8th view (capture order, starting with the
+first) is held out and never trained on.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+
+from ..core.types import Capture, CameraIntrinsics, InputError, View
+from . import mcmc
+from .gaussians import GaussianModel, MAX_SH_DEGREE, init_from_points
+from .loss import masked_psnr, masked_ssim, photometric_loss
+from .raster_common import RasterCamera
+
+
+@dataclass
+class TrainConfig:
+    """Options of object-only splat training (defaults: 3DGS-MCMC, scaled to a CPU budget)."""
+
+    iterations: int = 1500  # optimisation steps (one view per step)
+    max_gaussians: int = 20000  # MCMC hard cap on the number of Gaussians
+    sh_degree: int = 3  # final spherical-harmonics degree
+    sh_degree_interval: int = 300  # raise the active SH degree every this many steps
+    lr_means: float = 1.6e-4  # position lr, times the scene scale, decays x0.01 to the end
+    lr_sh_dc: float = 2.5e-3  # base colour lr
+    lr_sh_rest: float = 1.25e-4  # higher SH bands lr
+    lr_opacity: float = 0.05  # logit-opacity lr
+    lr_scales: float = 5e-3  # log-scale lr
+    lr_quats: float = 1e-3  # rotation lr
+    lambda_dssim: float = 0.2  # weight of D-SSIM in the photometric loss
+    opacity_reg: float = 0.01  # MCMC L1 opacity penalty
+    scale_reg: float = 0.01  # MCMC L1 scale penalty
+    noise_lr: float = 5e5  # MCMC SGLD noise scale (times the position lr)
+    refine_every: int = 100  # relocate / add Gaussians every this many steps
+    refine_start: int = 100  # first refinement step
+    refine_stop_frac: float = 0.8  # no refinement in the last 20% of the steps
+    grow_rate: float = 0.1  # add up to this fraction of the current count per refinement
+    outside_mask_limit: float = 0.5  # relocate Gaussians outside the mask in > this fraction
+    seed: int = 0  # view order, backgrounds, MCMC sampling and noise
+    background: str = "random"  # "random" per step, or "black"/"white" (evaluation is black)
+    full_image: bool = False  # ignore masks: loss over all pixels (paper Fig. 1 baseline)
+    holdout_every: int = 8  # every n-th view (from the first) is held out; 0 = none
+    eval_every: int = 500  # held-out PSNR/SSIM every this many steps (0 = only at the end)
+    snapshot_every: int = 500  # keep a copy of the splats every this many steps (0 = end only)
+    initial_opacity: float = 0.5  # opacity of the initial Gaussians
+    max_memory_fraction: float = 0.7  # refuse to start above this share of available RAM
+    backend: str = "auto"  # "cpu", "gsplat" (CUDA) or "auto"
+    threads: int = 0  # torch CPU threads; 0 = all cores
+
+
+@dataclass
+class HeldOutResult:
+    """Evaluation of one held-out view."""
+
+    key: str
+    psnr: float
+    ssim: float
+    render: np.ndarray  # [H, W, 3] uint8, over black
+    gt: np.ndarray  # [H, W, 3] uint8, object only (background black)
+    mask: np.ndarray  # [H, W] bool
+
+
+@dataclass
+class TrainResult:
+    """What training produced and counted."""
+
+    model: GaussianModel
+    config: TrainConfig
+    history: list[dict] = field(default_factory=list)  # {"it", "loss", "psnr", "n"}
+    evals: list[dict] = field(default_factory=list)  # {"it", "psnr", "ssim"} on held-out views
+    heldout: list[HeldOutResult] = field(default_factory=list)
+    snapshots: list[tuple[int, GaussianModel]] = field(default_factory=list)
+    previews: list[tuple[int, str, np.ndarray]] = field(default_factory=list)  # it, key, rgb
+    train_keys: list[str] = field(default_factory=list)
+    heldout_keys: list[str] = field(default_factory=list)
+    dropped_no_pose: int = 0
+    skipped_empty_mask: int = 0
+    nan_steps: int = 0
+    init: str = "points"  # "points" or "visual_hull"
+    seconds: float = 0.0
+    its_per_s: float = 0.0
+    backend: str = "cpu"
+
+    def metrics(self) -> dict:
+        """Mean held-out masked PSNR/SSIM and counts (report.json)."""
+        ps = [h.psnr for h in self.heldout if math.isfinite(h.psnr)]
+        ss = [h.ssim for h in self.heldout]
+        return {"heldout_psnr": float(np.mean(ps)) if ps else None,
+                "heldout_ssim": float(np.mean(ss)) if ss else None,
+                "n_heldout": len(self.heldout), "n_train": len(self.train_keys),
+                "n_gaussians": len(self.model), "seconds": self.seconds,
+                "its_per_s": self.its_per_s, "dropped_no_pose": self.dropped_no_pose,
+                "skipped_empty_mask": self.skipped_empty_mask, "nan_steps": self.nan_steps,
+                "init": self.init, "backend": self.backend}
+
+
+# --------------------------------------------------------------------------- data preparation
+
+
+def _undistort_maps(cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """For every pixel of the ideal pinhole image, where to sample the distorted image."""
+    if cam.distortion_model not in ("plumb_bob", "rational_polynomial"):
+        raise InputError(f"cannot undistort camera model {cam.distortion_model!r}; "
+                         "rectify the images first or use plumb_bob")
+    d = np.zeros(8)
+    d[:min(8, len(cam.dist))] = np.asarray(cam.dist, dtype=np.float64)[:8]
+    k1, k2, p1, p2, k3, k4, k5, k6 = d
+    v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
+    x = (u - cam.cx) / cam.fx
+    y = (v - cam.cy) / cam.fy
+    r2 = x * x + y * y
+    radial = (1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3) / (1 + k4 * r2 + k5 * r2 ** 2
+                                                             + k6 * r2 ** 3)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return yd * cam.fy + cam.cy, xd * cam.fx + cam.cx
+
+
+def undistort(image: np.ndarray, mask: Optional[np.ndarray],
+              cam: CameraIntrinsics) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Resample a distorted image (bilinear) and mask (nearest) onto the ideal pinhole grid."""
+    from scipy.ndimage import map_coordinates
+
+    rows, cols = _undistort_maps(cam)
+    out = np.stack([map_coordinates(image[..., c].astype(np.float32), [rows, cols], order=1,
+                                    mode="nearest") for c in range(image.shape[2])], -1)
+    out_mask = None
+    if mask is not None:
+        out_mask = map_coordinates(mask.astype(np.uint8), [rows, cols], order=0,
+                                   mode="constant", cval=0).astype(bool)
+    return np.clip(out + 0.5, 0, 255).astype(np.uint8), out_mask
+
+
+@dataclass
+class _Frame:
+    key: str
+    cam: RasterCamera
+    image: torch.Tensor  # [H, W, 3] float in [0, 1]
+    mask: torch.Tensor  # [H, W] bool
+
+
+def _prepare(capture: Capture, masks: Optional[dict[str, np.ndarray]], cfg: TrainConfig,
+             result: TrainResult) -> tuple[list[_Frame], list[_Frame]]:
+    train, held = [], []
+    for idx, view in enumerate(capture.views):
+        if view.pose is None:
+            result.dropped_no_pose += 1
+            continue
+        image = view.get_image()
+        if cfg.full_image:
+            mask = np.ones(image.shape[:2], dtype=bool)
+        else:
+            mask = None if masks is None else masks.get(view.key)
+            if mask is None:
+                raise InputError(f"no object mask for view {view.key!r}; pass a masks folder "
+                                 "with <key>.png for every view (or --full-image)")
+            mask = np.asarray(mask).astype(bool)
+            if mask.shape != image.shape[:2]:
+                raise InputError(f"mask of view {view.key!r} is {mask.shape[1]}x"
+                                 f"{mask.shape[0]}, image is {image.shape[1]}x"
+                                 f"{image.shape[0]}; masks must match the images")
+        cam = view.camera
+        if cam.has_distortion:
+            image, mask = undistort(image, mask, cam)
+        if not mask.any():
+            result.skipped_empty_mask += 1
+            continue
+        frame = _Frame(view.key, RasterCamera.from_view(cam, view.pose),
+                       torch.from_numpy(image.astype(np.float32) / 255.0), torch.from_numpy(mask))
+        is_held = cfg.holdout_every > 0 and idx % cfg.holdout_every == 0
+        (held if is_held else train).append(frame)
+    if not train:
+        raise InputError("no usable training views (all held out, without pose or with empty "
+                         "masks); capture more views or check the masks")
+    return train, held
+
+
+def _visual_hull_points(frames: list[_Frame], n: int, gen: torch.Generator) -> np.ndarray:
+    """Random points inside the masks' visual hull (init when the OOI cloud is empty/tiny).
+
+    Samples a box around the point the cameras look at (half size: half the median camera
+    distance) and keeps points inside the mask in every view that sees them.
+    """
+    from ..core.geometry import cameras_convergence_point
+    from ..core.types import Pose
+
+    poses = []
+    for f in frames:
+        R, t = f.cam.R.double().numpy(), f.cam.t.double().numpy()
+        poses.append(Pose.from_matrix(np.linalg.inv(np.block([[R, t[:, None]],
+                                                              [np.zeros((1, 3)), np.ones((1, 1))]]))))
+    center = cameras_convergence_point(poses)
+    dist = np.median([np.linalg.norm(p.center() - center) for p in poses])
+    cand = (torch.rand((n * 40, 3), generator=gen, dtype=torch.float64) - 0.5) * dist
+    cand = cand + torch.from_numpy(center)
+    frac, seen = mcmc.outside_mask_fraction(cand.float(), [f.cam for f in frames],
+                                            [f.mask for f in frames])
+    keep = (frac == 0) & (seen >= max(1, len(frames) // 4))
+    pts = cand[keep][:n].numpy()
+    if len(pts) < 4:
+        raise InputError("could not initialise: the OOI cloud is empty and no point lies in "
+                         "the masks' visual hull; check that masks and poses belong together")
+    return pts
+
+
+# ------------------------------------------------------------------------------------ training
+
+
+def choose_backend(name: str) -> str:
+    """Resolve "auto" to "gsplat" when gsplat and CUDA are usable, else "cpu"."""
+    if name not in ("auto", "cpu", "gsplat"):
+        raise InputError(f"unknown backend {name!r}; use auto, cpu or gsplat")
+    if name == "cpu":
+        return "cpu"
+    from .raster_gsplat import gsplat_available
+
+    if gsplat_available():
+        return "gsplat"
+    if name == "gsplat":
+        raise InputError("backend gsplat needs the gsplat package and a CUDA GPU; "
+                         "install gsplat or use --backend cpu")
+    return "cpu"
+
+
+def _renderer(backend: str) -> Callable:
+    if backend == "gsplat":
+        from .raster_gsplat import render
+    else:
+        from .raster_cpu import render
+    return render
+
+
+def estimate_memory_bytes(max_gaussians: int, width: int, height: int) -> int:
+    """Rough peak memory of one training step on the CPU back-end.
+
+    Per Gaussian: 59 parameters x (value, grad, 2 Adam moments) + projection temporaries;
+    per pixel the dense per-tile batches keep ~10 float tensors of tiles x K x 256 for the
+    backward pass, with K bounded by the number of Gaussians overlapping a tile (taken as 2%
+    of the cap, at least 64, a generous figure for an object in the frame).
+    """
+    per_gauss = 59 * 4 * 4 + 400
+    k = max(64, int(0.02 * max_gaussians))
+    raster = 10 * 4 * width * height * k // 4
+    return max_gaussians * per_gauss + raster + 200 * 2 ** 20
+
+
+def _available_memory() -> int:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+class _Progress:
+    """A one-line progress bar on stderr (iterations, loss, PSNR, Gaussians, it/s)."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total, self.enabled, self.t0, self.last = total, enabled, time.time(), 0.0
+
+    def update(self, it: int, loss: float, psnr: float, n: int, force: bool = False) -> None:
+        now = time.time()
+        if not self.enabled or (not force and now - self.last < 0.5):
+            return
+        self.last = now
+        frac = it / max(1, self.total)
+        bar = "#" * int(30 * frac)
+        rate = it / max(1e-9, now - self.t0)
+        sys.stderr.write(f"\rtrain [{bar:<30}] {it}/{self.total} loss {loss:.4f} "
+                         f"psnr {psnr:5.2f} n {n} {rate:.1f} it/s")
+        if force:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def _evaluate(model: GaussianModel, frames: list[_Frame], render: Callable,
+              full_image: bool) -> list[HeldOutResult]:
+    out = []
+    black = torch.zeros(3)
+    with torch.no_grad():
+        for f in frames:
+            r = render(model, f.cam, black).image.clamp(0, 1).cpu()
+            m = None if full_image else f.mask
+            gt = f.image if full_image else f.image * f.mask[..., None]
+            out.append(HeldOutResult(f.key, masked_psnr(r, gt, f.mask), masked_ssim(r, gt, f.mask),
+                                     (r.numpy() * 255 + 0.5).astype(np.uint8),
+                                     (gt.numpy() * 255 + 0.5).astype(np.uint8),
+                                     f.mask.numpy().copy()))
+            del m
+    return out
+
+
+def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
+          init_points: Optional[np.ndarray], config: Optional[TrainConfig] = None,
+          init_colors: Optional[np.ndarray] = None,
+          progress: Optional[Callable[[int, float, float, int], None]] = None,
+          show_progress: bool = False) -> TrainResult:
+    """Train object-only Gaussians; see the module doc. ``masks`` maps view key -> [H, W] bool.
+
+    ``init_points`` [N, 3] is the OOI cloud (with ``init_colors`` [N, 3] uint8, optional); with
+    fewer than 4 points the Gaussians start at random points inside the masks' visual hull.
+    """
+    cfg = config or TrainConfig()
+    if cfg.iterations < 1:
+        raise InputError(f"iterations={cfg.iterations} must be >= 1")
+    if cfg.max_gaussians < 1:
+        raise InputError(f"max_gaussians={cfg.max_gaussians} must be >= 1")
+    if not 0 <= cfg.sh_degree <= MAX_SH_DEGREE:
+        raise InputError(f"sh_degree={cfg.sh_degree} must be within 0..{MAX_SH_DEGREE}")
+    if len(capture.views) == 0:
+        raise InputError("the capture has no views")
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    backend = choose_backend(cfg.backend)
+    render = _renderer(backend)
+    result = TrainResult(model=None, config=cfg, backend=backend)  # type: ignore[arg-type]
+    train_frames, held_frames = _prepare(capture, masks, cfg, result)
+    w = max(f.cam.width for f in train_frames)
+    h = max(f.cam.height for f in train_frames)
+    need, have = estimate_memory_bytes(cfg.max_gaussians, w, h), _available_memory()
+    if need > cfg.max_memory_fraction * have:
+        raise InputError(f"max_gaussians={cfg.max_gaussians} at {w}x{h} needs about "
+                         f"{need / 2**30:.1f} GiB, only {have / 2**30:.1f} GiB available; "
+                         "lower --max-gaussians")
+    gen = torch.Generator().manual_seed(int(cfg.seed))
+    torch.manual_seed(int(cfg.seed))
+    pts = None if init_points is None else np.asarray(init_points, dtype=np.float64).reshape(-1, 3)
+    if pts is None or len(pts) < 4:
+        pts = _visual_hull_points(train_frames, min(cfg.max_gaussians, 5000), gen)
+        init_colors, result.init = None, "visual_hull"
+    if len(pts) > cfg.max_gaussians:
+        sel = torch.randperm(len(pts), generator=gen)[:cfg.max_gaussians].numpy()
+        pts = pts[sel]
+        init_colors = None if init_colors is None else np.asarray(init_colors)[sel]
+    model = init_from_points(pts, init_colors, cfg.initial_opacity).requires_grad_(True)
+    extent = float(np.linalg.norm(pts - pts.mean(0), axis=1).max()) if len(pts) > 1 else 1.0
+    scene_scale = max(extent, 1e-3)
+    lr_means0 = cfg.lr_means * scene_scale
+    opt = torch.optim.Adam([
+        {"params": [model.means], "lr": lr_means0, "name": "means"},
+        {"params": [model.log_scales], "lr": cfg.lr_scales, "name": "log_scales"},
+        {"params": [model.quats], "lr": cfg.lr_quats, "name": "quats"},
+        {"params": [model.logit_opacities], "lr": cfg.lr_opacity, "name": "logit_opacities"},
+        {"params": [model.sh_dc], "lr": cfg.lr_sh_dc, "name": "sh_dc"},
+        {"params": [model.sh_rest], "lr": cfg.lr_sh_rest, "name": "sh_rest"},
+    ], eps=1e-15)
+    bar = _Progress(cfg.iterations, show_progress)
+    good = model.detached()
+    order: list[int] = []
+    preview_frames = (held_frames or train_frames)[:2]
+    refine_stop = int(cfg.refine_stop_frac * cfg.iterations)
+    t0 = time.time()
+    loss_v, psnr_v = float("nan"), 0.0
+    for it in range(1, cfg.iterations + 1):
+        model.sh_degree = min(cfg.sh_degree, (it - 1) // max(1, cfg.sh_degree_interval))
+        lr_m = lr_means0 * 0.01 ** ((it - 1) / max(1, cfg.iterations - 1))
+        opt.param_groups[0]["lr"] = lr_m
+        if not order:
+            order = torch.randperm(len(train_frames), generator=gen).tolist()
+        f = train_frames[order.pop()]
+        if cfg.full_image or cfg.background == "black":
+            bg = torch.zeros(3)
+        elif cfg.background == "white":
+            bg = torch.ones(3)
+        else:
+            bg = torch.rand(3, generator=gen)
+        out = render(model, f.cam, bg)
+        if cfg.full_image:
+            gt, mask = f.image, None
+        else:
+            m3 = f.mask[..., None].to(f.image.dtype)
+            gt, mask = f.image * m3 + bg * (1 - m3), f.mask
+        loss = photometric_loss(out.image, gt, mask, cfg.lambda_dssim)
+        total = loss + mcmc.regularisation(model, cfg.opacity_reg, cfg.scale_reg)
+        opt.zero_grad(set_to_none=True)
+        if not torch.isfinite(total):
+            result.nan_steps += 1
+            _restore(model, good)
+            continue
+        total.backward()
+        opt.step()
+        mcmc.inject_noise(model, lr_m, cfg.noise_lr)
+        if not all(torch.isfinite(p).all() for p in model.params().values()):
+            result.nan_steps += 1
+            _restore(model, good)
+            continue
+        loss_v = float(loss.detach())
+        with torch.no_grad():
+            psnr_v = masked_psnr(out.image.detach(), gt, mask)
+        result.history.append({"it": it, "loss": loss_v, "psnr": psnr_v, "n": len(model)})
+        if (cfg.refine_every > 0 and cfg.refine_start <= it <= refine_stop
+                and it % cfg.refine_every == 0):
+            _refine(model, opt, cfg, train_frames, gen)
+            good = model.detached()
+        if cfg.eval_every > 0 and it % cfg.eval_every == 0 and it < cfg.iterations and held_frames:
+            ev = _evaluate(model, held_frames, render, cfg.full_image)
+            result.evals.append({"it": it, "psnr": float(np.mean([e.psnr for e in ev])),
+                                 "ssim": float(np.mean([e.ssim for e in ev]))})
+        if cfg.snapshot_every > 0 and it % cfg.snapshot_every == 0 and it < cfg.iterations:
+            _snapshot(result, model, it, preview_frames, render)
+        if progress is not None:
+            progress(it, loss_v, psnr_v, len(model))
+        bar.update(it, loss_v, psnr_v, len(model))
+    result.seconds = time.time() - t0
+    result.its_per_s = cfg.iterations / max(result.seconds, 1e-9)
+    bar.update(cfg.iterations, loss_v, psnr_v, len(model), force=True)
+    model.requires_grad_(False)
+    result.model = model.detached()
+    _snapshot(result, result.model, cfg.iterations, preview_frames, render)
+    result.heldout = _evaluate(result.model, held_frames, render, cfg.full_image)
+    if result.heldout:
+        result.evals.append({"it": cfg.iterations,
+                             "psnr": float(np.mean([e.psnr for e in result.heldout])),
+                             "ssim": float(np.mean([e.ssim for e in result.heldout]))})
+    result.train_keys = [f.key for f in train_frames]
+    result.heldout_keys = [f.key for f in held_frames]
+    return result
+
+
+@torch.no_grad()
+def _restore(model: GaussianModel, good: GaussianModel) -> None:
+    """Copy the last good parameters back (sizes match: ``good`` is taken after growth)."""
+    for name, t in model.params().items():
+        src = getattr(good, name)
+        if src.shape == t.shape:
+            t.copy_(src)
+
+
+def _snapshot(result: TrainResult, model: GaussianModel, it: int, frames: list[_Frame],
+              render: Callable) -> None:
+    snap = model.detached()
+    result.snapshots.append((it, snap))
+    with torch.no_grad():
+        for f in frames:
+            img = render(snap, f.cam, torch.zeros(3)).image.clamp(0, 1)
+            result.previews.append((it, f.key, (img.numpy() * 255 + 0.5).astype(np.uint8)))
+
+
+def _refine(model: GaussianModel, opt: torch.optim.Optimizer, cfg: TrainConfig,
+            frames: list[_Frame], gen: torch.Generator) -> None:
+    """MCMC step: relocate dead / outside-mask Gaussians, then grow towards the cap."""
+    outside = None
+    if not cfg.full_image:
+        outside, _ = mcmc.outside_mask_fraction(model.means.detach(), [f.cam for f in frames],
+                                                [f.mask for f in frames])
+    dead = mcmc.dead_mask(model, 0.005, outside, cfg.outside_mask_limit)
+    if bool(dead.all()):
+        return
+    mcmc.relocate(model, opt, dead, gen)
+    n = len(model)
+    n_add = min(cfg.max_gaussians, int(n * (1 + cfg.grow_rate))) - n
+    mcmc.add_new(model, opt, max(0, n_add), gen)
