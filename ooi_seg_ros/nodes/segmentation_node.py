@@ -1,0 +1,216 @@
+"""``segmentation_node``: SfM cloud + keyframes in, OOI cloud, mesh and per-keyframe masks out.
+
+Subscribes: ``sfm/points`` and ``sfm/observations`` (latched), ``keyframe/image``,
+``keyframe/camera_info``, ``keyframe/pose`` (matched by exact stamp). Runs the segmentation
+pipeline (the same core code as ``ooi-seg segment``) every ``every_n_keyframes`` new keyframes
+and on the ``~/segment`` service (std_srvs/Trigger), in a worker thread. Publishes ``ooi/points``
+(PointCloud2, latched), ``ooi/mesh`` (visualization_msgs/Marker TRIANGLE_LIST, latched) and
+``ooi/mask`` (mono8, one per keyframe, stamp = the keyframe image's stamp; all keyframes are
+re-published whenever the mesh changes), plus ``diagnostics``.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import threading
+import time
+from typing import Optional
+
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker
+
+from .. import msgconv
+from ..core.types import Capture, View
+from ..seg.pipeline import SegmentationConfig, make_config, segment
+from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, guarded, latched_qos,
+                     reliable_qos, run_node)
+
+
+@dataclasses.dataclass
+class SegNodeConfig:
+    """Parameters of the segmentation node (see config/segmentation_node.yaml)."""
+
+    frame_id: str = dataclasses.field(default="map", metadata={"doc": "world frame of outputs"})
+    method: str = dataclasses.field(
+        default="ours", metadata={"doc": "segmentation preset: ours (default) or paper; "
+                                         "seg.* parameters override single options"})
+    every_n_keyframes: int = dataclasses.field(
+        default=10, metadata={"doc": "re-segment after this many new keyframes (0 = only on "
+                                     "the ~/segment service)"})
+    min_keyframes: int = dataclasses.field(
+        default=8, metadata={"doc": "keyframes needed before the first automatic run"})
+    max_keyframes: int = dataclasses.field(
+        default=2000, metadata={"doc": "keyframes kept in memory (oldest dropped beyond)"})
+    mask_stride: int = dataclasses.field(
+        default=1, metadata={"doc": "publish masks for every k-th keyframe (1 = all)"})
+
+
+SPECS = {
+    "every_n_keyframes": ParamSpec("re-segment after N new keyframes (0 = service only)", 0,
+                                   100000),
+    "min_keyframes": ParamSpec("keyframes before the first run", 2, 100000),
+    "max_keyframes": ParamSpec("keyframes kept in memory", 2, 1000000, read_only=True),
+    "mask_stride": ParamSpec("publish masks for every k-th keyframe", 1, 1000),
+    "frame_id": ParamSpec("world frame of outputs", read_only=True),
+    "method": ParamSpec("segmentation preset", choices=("ours", "paper"), read_only=True),
+}
+
+
+class SegmentationNode(Node):
+    """Keeps the keyframes and the latest cloud, segments on demand or every N keyframes."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("segmentation_node", **kwargs)
+        self.cfg = SegNodeConfig()
+        ConfigParams(self, self.cfg, specs=SPECS)
+        self.seg_cfg: SegmentationConfig = make_config(self.cfg.method)
+        ConfigParams(self, self.seg_cfg, prefix="seg.")
+        self.diag = Diagnostics(self)
+        self.throttle = Throttle(self)
+        self._lock = threading.Lock()
+        # stamp_ns -> partial keyframe {image, info, pose}
+        self._parts: dict[int, dict] = {}
+        self.keyframes: "collections.OrderedDict[int, View]" = collections.OrderedDict()
+        self._points_msg: Optional[PointCloud2] = None
+        self._obs_msg: Optional[PointCloud2] = None
+        self._new_since_run = 0
+        self._busy = threading.Lock()
+        self.runs = 0
+        self.last_result = None
+
+        rq = reliable_qos(depth=50)
+        self.create_subscription(Image, "keyframe/image", self.on_kf_image, rq)
+        self.create_subscription(CameraInfo, "keyframe/camera_info", self.on_kf_info, rq)
+        self.create_subscription(PoseStamped, "keyframe/pose", self.on_kf_pose, rq)
+        self.create_subscription(PointCloud2, "sfm/points", self.on_points, latched_qos())
+        self.create_subscription(PointCloud2, "sfm/observations", self.on_obs, latched_qos())
+        self.pub_points = self.create_publisher(PointCloud2, "ooi/points", latched_qos())
+        self.pub_mesh = self.create_publisher(Marker, "ooi/mesh", latched_qos())
+        self.pub_mask = self.create_publisher(Image, "ooi/mask", reliable_qos(depth=100))
+        self.create_service(Trigger, "~/segment", self.on_segment_srv)
+        self.diag.set_state("waiting for keyframes and the SfM cloud")
+
+    # ---- inputs -------------------------------------------------------------------------
+    def _part(self, stamp_ns: int, key: str, value) -> None:
+        with self._lock:
+            part = self._parts.setdefault(stamp_ns, {})
+            part[key] = value
+            if len(part) == 3:
+                del self._parts[stamp_ns]
+                view = View(key=str(stamp_ns), stamp_ns=stamp_ns, camera=part["info"],
+                            pose=part["pose"], image=part["image"])
+                self.keyframes[stamp_ns] = view
+                while len(self.keyframes) > self.cfg.max_keyframes:
+                    self.keyframes.popitem(last=False)
+                    self.diag.count("dropped_old_keyframes")
+                self._new_since_run += 1
+            while len(self._parts) > 100:  # halves that never completed
+                self._parts.pop(next(iter(self._parts)))
+                self.diag.count("dropped_incomplete_keyframe")
+        self.diag.set("keyframes", len(self.keyframes))
+        self._maybe_run()
+
+    @guarded("dropped_keyframe_image")
+    def on_kf_image(self, msg: Image) -> None:
+        self._part(msgconv.stamp_to_ns(msg.header.stamp), "image", msgconv.image_to_rgb(msg))
+
+    @guarded("dropped_keyframe_info")
+    def on_kf_info(self, msg: CameraInfo) -> None:
+        self._part(msgconv.stamp_to_ns(msg.header.stamp), "info",
+                   msgconv.camera_info_to_intrinsics(msg))
+
+    @guarded("dropped_keyframe_pose")
+    def on_kf_pose(self, msg: PoseStamped) -> None:
+        self._part(msgconv.stamp_to_ns(msg.header.stamp), "pose",
+                   msgconv.pose_from_msg(msg.pose))
+
+    @guarded("dropped_cloud")
+    def on_points(self, msg: PointCloud2) -> None:
+        self._points_msg = msg
+        self._maybe_run()
+
+    @guarded("dropped_cloud")
+    def on_obs(self, msg: PointCloud2) -> None:
+        self._obs_msg = msg
+
+    # ---- running the pipeline -------------------------------------------------------------
+    def _maybe_run(self) -> None:
+        n = self.cfg.every_n_keyframes
+        if n <= 0 or self._points_msg is None or len(self.keyframes) < self.cfg.min_keyframes:
+            return
+        if self._new_since_run >= n or self.runs == 0:
+            self.trigger()
+
+    def trigger(self) -> bool:
+        """Starts a segmentation run in the background unless one is running."""
+        if not self._busy.acquire(blocking=False):
+            return False
+        self._new_since_run = 0
+        threading.Thread(target=self._run, daemon=True).start()
+        return True
+
+    def _run(self) -> None:
+        try:
+            t0 = time.monotonic()
+            with self._lock:
+                views = list(self.keyframes.values())
+            if self._points_msg is None or len(views) < 2:
+                self.throttle.warn("segnodata", "segment: need the SfM cloud and >= 2 keyframes")
+                return
+            cloud = msgconv.pointcloud2_to_sfm_cloud(self._points_msg, self._obs_msg, views)
+            capture = Capture(views=views, source="ros")
+            self.diag.set_state(f"segmenting {len(cloud)} points over {len(views)} keyframes")
+            result = segment(capture, cloud, self.seg_cfg)
+            self.last_result = result
+            self.runs += 1
+            self.diag.timing("segment", time.monotonic() - t0)
+            self._publish(result, views)
+            for w in getattr(result, "warnings", []) or []:
+                self.throttle.warn("segwarn:" + w[:40], f"segmentation: {w}")
+            self.diag.set_state(f"run {self.runs}: {len(result.ooi_cloud)} OOI points, "
+                                f"{len(result.masks)} masks")
+        except Exception as exc:  # noqa: BLE001 — the node keeps running
+            self.diag.count("error_segmentation")
+            self.throttle.warn("segfail", f"segmentation failed: {exc}")
+        finally:
+            self._busy.release()
+
+    def _publish(self, result, views: list[View]) -> None:
+        stamp = msgconv.ns_to_stamp(views[-1].stamp_ns)
+        oc = result.ooi_cloud
+        self.pub_points.publish(msgconv.xyzrgb_to_pointcloud2(oc.xyz, oc.rgb, stamp,
+                                                              self.cfg.frame_id))
+        if result.mesh is not None and not result.mesh.is_empty:
+            self.pub_mesh.publish(msgconv.mesh_to_marker(result.mesh, stamp, self.cfg.frame_id))
+        for i, v in enumerate(views):
+            if i % self.cfg.mask_stride:
+                continue
+            mask = result.masks.get(v.key)
+            if mask is None:
+                continue
+            self.pub_mask.publish(msgconv.mask_to_image(mask, msgconv.ns_to_stamp(v.stamp_ns),
+                                                        "camera_optical"))
+            self.diag.count("masks_published")
+
+    def on_segment_srv(self, request, response):
+        if self._points_msg is None or len(self.keyframes) < 2:
+            response.success = False
+            response.message = (f"not ready: cloud={'yes' if self._points_msg else 'no'}, "
+                                f"keyframes={len(self.keyframes)} (need the SfM cloud and >= 2)")
+            return response
+        started = self.trigger()
+        response.success = started
+        response.message = "segmentation started" if started else "a run is already in progress"
+        return response
+
+
+def main(args=None) -> None:
+    run_node(SegmentationNode, args)
+
+
+if __name__ == "__main__":
+    main()
