@@ -22,8 +22,8 @@ class RoiConfig:
     """Options of the camera-framing region of interest."""
 
     enabled: bool = True  # False keeps every point
-    min_in_frame: float = 0.5  # keep points inside the frame of at least this share of views
-    radius_scale: float = 1.0  # keep points within this x the frame half-extent at the object
+    min_in_frame: float = 0.25  # keep points inside the frame of at least this share of views
+    radius_scale: float = 1.5  # keep points within this x the frame half-extent at the object
     max_views: int = 120  # views sampled for the in-frame test (evenly spaced)
 
 
