@@ -58,7 +58,7 @@ class TrainConfig:
     initial_opacity: float = 0.5  # opacity of the initial Gaussians
     max_memory_fraction: float = 0.7  # refuse to start above this share of available RAM
     backend: str = "auto"  # "cpu", "gsplat" (CUDA) or "auto"
-    threads: int = 0  # torch CPU threads; 0 = all cores
+    threads: int = 1  # torch CPU threads (0 = torch default); >1 collapses on a loaded box
 
 
 @dataclass
@@ -216,6 +216,30 @@ def _visual_hull_points(frames: list[_Frame], n: int, gen: torch.Generator) -> n
     return pts
 
 
+def _colors_from_views(pts: np.ndarray, frames: list[_Frame], max_views: int = 16) -> np.ndarray:
+    """[N, 3] uint8 initial colours: mean of the pixels the points project to inside the masks.
+
+    Without colours every Gaussian would start grey and spend hundreds of steps on its base
+    colour; occlusion is ignored (a point's back-side pixels average in), which is fine for a
+    starting value.
+    """
+    p = torch.from_numpy(pts).float()
+    acc = torch.zeros(len(p), 3)
+    cnt = torch.zeros(len(p))
+    step = max(1, len(frames) // max_views)
+    for f in frames[::step]:
+        pc = p @ f.cam.R.T.float() + f.cam.t.float()
+        z = pc[:, 2].clamp_min(1e-6)
+        u = torch.round(f.cam.fx * pc[:, 0] / z + f.cam.cx).long()
+        v = torch.round(f.cam.fy * pc[:, 1] / z + f.cam.cy).long()
+        ok = (pc[:, 2] > 0) & (u >= 0) & (u < f.cam.width) & (v >= 0) & (v < f.cam.height)
+        ok[ok.clone()] = f.mask[v[ok], u[ok]]
+        acc[ok] += f.image[v[ok], u[ok]]
+        cnt[ok] += 1
+    col = torch.where(cnt[:, None] > 0, acc / cnt.clamp_min(1)[:, None], torch.full_like(acc, 0.5))
+    return (col.numpy() * 255 + 0.5).astype(np.uint8)
+
+
 # ------------------------------------------------------------------------------------ training
 
 
@@ -348,6 +372,8 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
         sel = torch.randperm(len(pts), generator=gen)[:cfg.max_gaussians].numpy()
         pts = pts[sel]
         init_colors = None if init_colors is None else np.asarray(init_colors)[sel]
+    if init_colors is None:
+        init_colors = _colors_from_views(pts, train_frames)
     model = init_from_points(pts, init_colors, cfg.initial_opacity).requires_grad_(True)
     extent = float(np.linalg.norm(pts - pts.mean(0), axis=1).max()) if len(pts) > 1 else 1.0
     scene_scale = max(extent, 1e-3)
