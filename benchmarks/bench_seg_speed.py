@@ -104,7 +104,7 @@ def main() -> None:
         cloud = SfmCloud.from_points(xs[k2])
         cloud.views = views
         (mesh, _), t_m = timed(lambda: build_mesh(cloud, MeshConfig(poisson_depth=8)))
-        sk_est = sk[n0] * (n / n0) ** 2
+        sk_est = sk[n] if n in sk else sk[n0] * (n / n0) ** 2
         mark = "" if n in sk else "~"
         print(f"{n:>8} {t_roi:7.2f} {t_fp:8.2f} {t_fs:8.2f} {t_d:8.2f} {mark:>1}{sk_est:10.1f} "
               f"{t_n:7.2f} {t_m:7.2f}", flush=True)
