@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     if not path.exists():
         raise InputError(f"bag {path} does not exist")
     reader = BagReader(path)
-    if args.topic not in reader.topics:
+    if args.topic not in reader.topics():
         raise InputError(f"{path} has no {args.topic} topic; is it a training.mcap?")
     snaps = [(t, data) for _, _, t, data in reader.messages([args.topic])]
     if not -len(snaps) <= args.index < len(snaps):

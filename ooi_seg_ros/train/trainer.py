@@ -203,7 +203,7 @@ def _visual_hull_points(frames: list[_Frame], n: int, gen: torch.Generator) -> n
         poses.append(Pose.from_matrix(np.linalg.inv(np.block([[R, t[:, None]],
                                                               [np.zeros((1, 3)), np.ones((1, 1))]]))))
     center = cameras_convergence_point(poses)
-    dist = np.median([np.linalg.norm(p.center() - center) for p in poses])
+    dist = np.median([np.linalg.norm(p.center - center) for p in poses])
     cand = (torch.rand((n * 40, 3), generator=gen, dtype=torch.float64) - 0.5) * dist
     cand = cand + torch.from_numpy(center)
     frac, seen = mcmc.outside_mask_fraction(cand.float(), [f.cam for f in frames],

@@ -1,0 +1,131 @@
+"""End-to-end object-only training on a tiny simulated capture, edge cases, CLI and export."""
+
+import json
+from argparse import Namespace
+
+import numpy as np
+import pytest
+import torch
+
+from ooi_seg_ros.cli import export as export_cli
+from ooi_seg_ros.cli import train as train_cli
+from ooi_seg_ros.core.types import InputError
+from ooi_seg_ros.train.gaussians import load_ply, read_ply_header
+from ooi_seg_ros.train.trainer import TrainConfig, train
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def sim():
+    from ooi_seg_ros.sim import simulate_capture
+    return simulate_capture("aircraft", n_views=10, width=48, height=36, seed=0,
+                            supersample=1).capture
+
+
+def _cfg(**kw):
+    base = dict(iterations=30, max_gaussians=600, refine_every=10, refine_start=10,
+                eval_every=10, snapshot_every=10, sh_degree_interval=10)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_train_holdout_counts_and_improves(sim):
+    masks = {v.key: v.gt_mask for v in sim.views}
+    pts = sim.gt_ooi_points[::40]
+    r = train(sim, masks, pts, _cfg())
+    keys = [v.key for v in sim.views]
+    assert r.heldout_keys == [keys[0], keys[8]]  # every 8th from the first
+    assert not set(r.heldout_keys) & set(r.train_keys)
+    assert len(r.model) <= 600 and r.model.sh_degree == 2
+    assert r.history[-1]["loss"] < r.history[0]["loss"]
+    assert len(r.snapshots) == 3 and r.heldout and np.isfinite(r.heldout[0].psnr)
+    # renders are black outside the object: Gaussians were not spent on background
+    h = r.heldout[0]
+    assert h.render[~h.mask].mean() < h.render[h.mask].mean()
+
+
+def test_drops_and_skips_are_counted(sim):
+    from dataclasses import replace
+    views = list(sim.views)
+    views[1] = replace(views[1], pose=None)
+    masks = {v.key: v.gt_mask for v in views}
+    masks[views[2].key] = np.zeros_like(views[2].gt_mask)
+    cap = replace(sim, views=views)
+    r = train(cap, masks, sim.gt_ooi_points[::40], _cfg(iterations=3, eval_every=0))
+    assert r.dropped_no_pose == 1 and r.skipped_empty_mask == 1
+    assert len(r.train_keys) == 6
+
+
+def test_empty_cloud_uses_visual_hull_and_errors(sim):
+    masks = {v.key: v.gt_mask for v in sim.views}
+    r = train(sim, masks, np.zeros((0, 3)), _cfg(iterations=2, eval_every=0))
+    assert r.init == "visual_hull" and len(r.model) > 10
+    with pytest.raises(InputError, match="max-gaussians"):
+        train(sim, masks, sim.gt_ooi_points[::40], _cfg(max_gaussians=10 ** 10))
+    with pytest.raises(InputError, match="mask"):
+        train(sim, {}, sim.gt_ooi_points[::40], _cfg(iterations=2))
+
+
+def test_nan_step_is_skipped(sim):
+    masks = {v.key: v.gt_mask for v in sim.views}
+    calls = {"n": 0}
+    from ooi_seg_ros.train import trainer as tr
+    orig = tr.photometric_loss
+
+    def flaky(*a, **k):
+        calls["n"] += 1
+        out = orig(*a, **k)
+        return out * float("nan") if calls["n"] == 2 else out
+
+    tr.photometric_loss = flaky
+    try:
+        r = train(sim, masks, sim.gt_ooi_points[::40], _cfg(iterations=5, eval_every=0))
+    finally:
+        tr.photometric_loss = orig
+    assert r.nan_steps == 1 and len(r.history) == 4
+    assert all(torch.isfinite(t).all() for t in r.model.params().values())
+
+
+def test_full_image_option(sim):
+    r = train(sim, None, sim.gt_ooi_points[::40], _cfg(iterations=3, full_image=True,
+                                                      eval_every=0))
+    assert r.heldout and r.heldout[0].mask.all()
+
+
+def test_cli_train_and_export(sim, tmp_path):
+    from ooi_seg_ros.capture_io import write_capture
+    from PIL import Image
+    cap_dir = tmp_path / "cap"
+    write_capture(sim, cap_dir)
+    mdir = tmp_path / "masks"
+    mdir.mkdir()
+    for v in sim.views:
+        Image.fromarray(v.gt_mask.astype(np.uint8) * 255).save(mdir / f"{v.key}.png")
+    out = tmp_path / "out"
+    cfg_yaml = tmp_path / "c.yaml"
+    cfg_yaml.write_text("max_gaussians: 400\nsnapshot_every: 5\neval_every: 5\n")
+    args = Namespace(input=str(cap_dir), out=str(out), iterations=10, max_gaussians=None,
+                     masks=str(mdir), init=None, full_image=False, sh_degree=None, seed=None,
+                     backend="cpu", config=str(cfg_yaml), sim_views=60, sim_size="320x240",
+                     quiet=True)
+    assert train_cli.run(args) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["init"] == "visual_hull" and rep["n_heldout"] == 2
+    assert sorted(p.stem for p in (out / "heldout").iterdir()) == sorted(
+        [sim.views[0].key, sim.views[8].key])
+    assert (out / "report.html").read_text().count("<img") == 2
+    names, count, _, _ = read_ply_header(out / "splats.ply")
+    assert count == rep["n_gaussians"] and len(names) == 62
+    from ooi_seg_ros.bag import BagReader
+    topics = BagReader(out / "training.mcap").topics()
+    assert {"/train/splats", "/train/loss", "/train/psnr", "/train/masks",
+            "/train/preview/v0"} <= set(topics)
+    ply = tmp_path / "e.ply"
+    assert export_cli.run(Namespace(bag=str(out / "training.mcap"), out=str(ply), index=-1,
+                                    topic="/train/splats")) == 0
+    a, b = load_ply(ply), load_ply(out / "splats.ply")
+    assert torch.allclose(a.means, b.means) and torch.allclose(a.sh_rest, b.sh_rest)
+    with pytest.raises(InputError, match="out of range"):
+        export_cli.run(Namespace(bag=str(out / "training.mcap"), out=str(ply), index=99,
+                                 topic="/train/splats"))
