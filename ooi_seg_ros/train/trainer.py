@@ -58,6 +58,7 @@ class TrainConfig:
     initial_opacity: float = 0.5  # opacity of the initial Gaussians
     max_memory_fraction: float = 0.7  # refuse to start above this share of available RAM
     backend: str = "auto"  # "cpu", "gsplat" (CUDA) or "auto"
+    time_budget_s: float = 0.0  # stop early after this many seconds of training (0 = none)
     threads: int = 1  # torch CPU threads (0 = torch default); >1 collapses on a loaded box
 
 
@@ -89,6 +90,7 @@ class TrainResult:
     dropped_no_pose: int = 0
     skipped_empty_mask: int = 0
     nan_steps: int = 0
+    iterations_done: int = 0  # less than config.iterations when the time budget ran out
     init: str = "points"  # "points" or "visual_hull"
     seconds: float = 0.0
     its_per_s: float = 0.0
@@ -102,7 +104,8 @@ class TrainResult:
                 "heldout_ssim": float(np.mean(ss)) if ss else None,
                 "n_heldout": len(self.heldout), "n_train": len(self.train_keys),
                 "n_gaussians": len(self.model), "seconds": self.seconds,
-                "its_per_s": self.its_per_s, "dropped_no_pose": self.dropped_no_pose,
+                "its_per_s": self.its_per_s, "iterations": self.iterations_done,
+                "dropped_no_pose": self.dropped_no_pose,
                 "skipped_empty_mask": self.skipped_empty_mask, "nan_steps": self.nan_steps,
                 "init": self.init, "backend": self.backend}
 
@@ -393,7 +396,11 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
     refine_stop = int(cfg.refine_stop_frac * cfg.iterations)
     t0 = time.time()
     loss_v, psnr_v = float("nan"), 0.0
+    done = cfg.iterations
     for it in range(1, cfg.iterations + 1):
+        if cfg.time_budget_s > 0 and time.time() - t0 > cfg.time_budget_s:
+            done = it - 1
+            break
         model.sh_degree = min(cfg.sh_degree, (it - 1) // max(1, cfg.sh_degree_interval))
         lr_m = lr_means0 * 0.01 ** ((it - 1) / max(1, cfg.iterations - 1))
         opt.param_groups[0]["lr"] = lr_m
@@ -444,14 +451,15 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
             progress(it, loss_v, psnr_v, len(model))
         bar.update(it, loss_v, psnr_v, len(model))
     result.seconds = time.time() - t0
-    result.its_per_s = cfg.iterations / max(result.seconds, 1e-9)
-    bar.update(cfg.iterations, loss_v, psnr_v, len(model), force=True)
+    result.its_per_s = done / max(result.seconds, 1e-9)
+    result.iterations_done = done
+    bar.update(done, loss_v, psnr_v, len(model), force=True)
     model.requires_grad_(False)
     result.model = model.detached()
-    _snapshot(result, result.model, cfg.iterations, preview_frames, render)
+    _snapshot(result, result.model, done, preview_frames, render)
     result.heldout = _evaluate(result.model, held_frames, render, cfg.full_image)
     if result.heldout:
-        result.evals.append({"it": cfg.iterations,
+        result.evals.append({"it": done,
                              "psnr": float(np.mean([e.psnr for e in result.heldout])),
                              "ssim": float(np.mean([e.ssim for e in result.heldout]))})
     result.train_keys = [f.key for f in train_frames]

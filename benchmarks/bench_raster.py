@@ -1,0 +1,68 @@
+"""Forward+backward throughput of the CPU tile rasteriser next to the brute-force reference.
+
+Random Gaussians filling a sphere in front of the camera (a dense object-like footprint).
+Prints it/s for both renderers in the same run; the reference only where its dense
+[N, H*W] tensors fit in --ref-max-elems.
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_raster.py [--sizes 320x240,640x480]
+        [--counts 10000,50000,200000] [--reps 3] [--threads 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from ooi_seg_ros.core.geometry import look_at
+from ooi_seg_ros.core.types import CameraIntrinsics
+from ooi_seg_ros.train import raster_cpu, raster_reference
+from ooi_seg_ros.train.gaussians import init_from_points
+from ooi_seg_ros.train.raster_common import RasterCamera
+
+
+def _time(fn, model, cam, reps: int) -> tuple[float, int]:
+    bg = torch.zeros(3)
+    best, inter = float("inf"), 0
+    for _ in range(reps):
+        for p in model.params().values():
+            p.grad = None
+        t = time.perf_counter()
+        out = fn(model, cam, bg)
+        out.image.sum().backward()
+        best = min(best, time.perf_counter() - t)
+        inter = out.n_intersections
+    return 1.0 / best, inter
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="320x240,640x480")
+    ap.add_argument("--counts", default="10000,50000,200000")
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--ref-max-elems", type=float, default=3e8)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    rng = np.random.default_rng(0)
+    print(f"{'size':>8} {'N':>7} {'pairs':>9} {'tile it/s':>10} {'reference it/s':>15}")
+    for size in a.sizes.split(","):
+        w, h = (int(x) for x in size.split("x"))
+        cam = CameraIntrinsics(width=w, height=h, fx=0.9 * w, fy=0.9 * w, cx=(w - 1) / 2,
+                               cy=(h - 1) / 2)
+        rc = RasterCamera.from_view(cam, look_at(np.array([3.0, 0.0, 1.0]), np.zeros(3)))
+        for n in (int(c) for c in a.counts.split(",")):
+            d = rng.normal(size=(n, 3))
+            pts = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.5, 1.0, (n, 1))
+            m = init_from_points(pts, rng.integers(0, 255, (n, 3)), 0.5).requires_grad_(True)
+            tile, pairs = _time(raster_cpu.render, m, rc, a.reps)
+            ref = "n/a (memory)"
+            if n * w * h <= a.ref_max_elems:
+                ref = f"{_time(raster_reference.render, m, rc, 1)[0]:.3f}"
+            print(f"{size:>8} {n:>7} {pairs:>9} {tile:>10.3f} {ref:>15}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,70 @@
+"""Object-only vs full-image training under the same CPU budget and Gaussian cap.
+
+For each simulator scene: a capture (default 60 views, 320x240), the OOI surface points as
+initial cloud, ground-truth masks; then (a) object-only training (loss inside the masks, random
+background, mask-aware MCMC) and (b) the same training on the full image without masks. Both
+are scored on the held-out views (every 8th) by PSNR/SSIM inside the true object mask.
+
+    OMP_NUM_THREADS=1 nice .venv/bin/python benchmarks/bench_train.py --budget 600
+        [--scenes aircraft,tabletop] [--size 320x240] [--views 60] [--max-gaussians 20000]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from ooi_seg_ros.train.loss import masked_psnr, masked_ssim
+from ooi_seg_ros.train.raster_common import RasterCamera
+from ooi_seg_ros.train.raster_cpu import render
+from ooi_seg_ros.train.trainer import TrainConfig, train
+
+
+def _score(model, capture, keys) -> tuple[float, float]:
+    ps, ss = [], []
+    views = {v.key: v for v in capture.views}
+    with torch.no_grad():
+        for k in keys:
+            v = views[k]
+            img = render(model, RasterCamera.from_view(v.camera, v.pose), torch.zeros(3)).image
+            m = torch.from_numpy(v.gt_mask)
+            gt = torch.from_numpy(v.image.astype(np.float32) / 255.0) * m[..., None]
+            ps.append(masked_psnr(img, gt, m))
+            ss.append(masked_ssim(img, gt, m))
+    return float(np.mean(ps)), float(np.mean(ss))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="aircraft")
+    ap.add_argument("--size", default="320x240")
+    ap.add_argument("--views", type=int, default=60)
+    ap.add_argument("--budget", type=float, default=600.0, help="seconds per training run")
+    ap.add_argument("--iterations", type=int, default=100000)
+    ap.add_argument("--max-gaussians", type=int, default=20000)
+    ap.add_argument("--init-points", type=int, default=5000)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    from ooi_seg_ros.sim import simulate_capture
+    w, h = (int(x) for x in a.size.split("x"))
+    print(f"{'scene':>10} {'mode':>11} {'its':>6} {'N':>6} {'PSNR(mask)':>10} {'SSIM(mask)':>10}")
+    for scene in a.scenes.split(","):
+        cap = simulate_capture(scene, n_views=a.views, width=w, height=h, seed=0).capture
+        rng = np.random.default_rng(0)
+        pts = cap.gt_ooi_points
+        pts = pts[rng.choice(len(pts), min(a.init_points, len(pts)), replace=False)]
+        masks = {v.key: v.gt_mask for v in cap.views}
+        for mode in ("object-only", "full-image"):
+            cfg = TrainConfig(iterations=a.iterations, max_gaussians=a.max_gaussians,
+                              time_budget_s=a.budget, full_image=mode == "full-image",
+                              eval_every=0, snapshot_every=0)
+            r = train(cap, None if cfg.full_image else masks, pts, cfg)
+            p, s = _score(r.model, cap, r.heldout_keys)
+            print(f"{scene:>10} {mode:>11} {r.iterations_done:>6} {len(r.model):>6} "
+                  f"{p:>10.2f} {s:>10.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
