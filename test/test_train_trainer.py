@@ -88,8 +88,8 @@ def test_nan_step_is_skipped(sim):
 
 
 def test_full_image_option(sim):
-    r = train(sim, None, sim.gt_ooi_points[::40], _cfg(iterations=3, full_image=True,
-                                                      eval_every=0))
+    cfg = _cfg(iterations=3, full_image=True, eval_every=0)
+    r = train(sim, None, sim.gt_ooi_points[::40], cfg)
     assert r.heldout and r.heldout[0].mask.all()
 
 

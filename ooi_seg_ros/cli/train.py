@@ -31,9 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "object masks, MCMC densification under a cap, every 8th view held out.")
     p.add_argument("input", help="ooi-seg segment output folder, or a capture with --masks")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=int, default=None, help="training steps (default 1500)")
+    p.add_argument("--iterations", type=int, default=None, help="training steps (default 1000)")
     p.add_argument("--max-gaussians", type=int, default=None,
-                   help="hard cap on the number of Gaussians (default 20000)")
+                   help="hard cap on the number of Gaussians (default 10000)")
     p.add_argument("--masks", default=None,
                    help="folder of <key>.png object masks (overrides the segmentation's)")
     p.add_argument("--init", default=None, help="PLY point cloud to start from "
@@ -244,9 +244,9 @@ def run(args: argparse.Namespace) -> int:
     capture, masks, pts, cols = load_inputs(args)
     result = train(capture, masks, pts, cfg, init_colors=cols, show_progress=not args.quiet)
     rep = write_outputs(result, masks, Path(args.out))
-    psnr = rep["heldout_psnr"]
-    print(f"wrote {args.out}: {rep['n_gaussians']} Gaussians, held-out masked PSNR "
-          f"{psnr if psnr is None else round(psnr, 2)} dB, SSIM "
-          f"{rep['heldout_ssim'] if rep['heldout_ssim'] is None else round(rep['heldout_ssim'], 3)}"
-          f", {rep['its_per_s']:.2f} it/s")
+    psnr, ssim = rep["heldout_psnr"], rep["heldout_ssim"]
+    psnr_s = "n/a" if psnr is None else f"{psnr:.2f} dB"
+    ssim_s = "n/a" if ssim is None else f"{ssim:.3f}"
+    print(f"wrote {args.out}: {rep['n_gaussians']} Gaussians, held-out masked PSNR {psnr_s}, "
+          f"SSIM {ssim_s}, {rep['its_per_s']:.2f} it/s")
     return 0

@@ -152,7 +152,7 @@ def rasterize(pr: Projected, cam: RasterCamera, background: torch.Tensor,
         col_t = pr.means2d.new_zeros(n_tiles, TILE * TILE, 3)
         acc_t = pr.means2d.new_zeros(n_tiles, TILE * TILE)
     img = col_t + (1.0 - acc_t)[..., None] * bg
-    img = img.reshape(ty, tx, TILE, TILE, 3).permute(0, 2, 1, 3, 4).reshape(ty * TILE,
-                                                                          tx * TILE, 3)
+    img = img.reshape(ty, tx, TILE, TILE, 3).permute(0, 2, 1, 3, 4)
+    img = img.reshape(ty * TILE, tx * TILE, 3)
     acc = acc_t.reshape(ty, tx, TILE, TILE).permute(0, 2, 1, 3).reshape(ty * TILE, tx * TILE)
     return RenderOutput(img[:H, :W], acc[:H, :W], pr.radii, int(len(gauss)))

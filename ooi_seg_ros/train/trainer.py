@@ -19,7 +19,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from ..core.types import Capture, CameraIntrinsics, InputError, View
+from ..core.types import CameraIntrinsics, Capture, InputError
 from . import mcmc
 from .gaussians import GaussianModel, MAX_SH_DEGREE, init_from_points
 from .loss import masked_psnr, masked_ssim, photometric_loss
@@ -30,8 +30,8 @@ from .raster_common import RasterCamera
 class TrainConfig:
     """Options of object-only splat training (defaults: 3DGS-MCMC, scaled to a CPU budget)."""
 
-    iterations: int = 1500  # optimisation steps (one view per step)
-    max_gaussians: int = 20000  # MCMC hard cap on the number of Gaussians
+    iterations: int = 1000  # optimisation steps (one view per step); ~10 min at 320x240
+    max_gaussians: int = 10000  # MCMC hard cap on the number of Gaussians
     sh_degree: int = 3  # final spherical-harmonics degree
     sh_degree_interval: int = 300  # raise the active SH degree every this many steps
     lr_means: float = 1.6e-4  # position lr, times the scene scale, decays x0.01 to the end
@@ -125,8 +125,8 @@ def _undistort_maps(cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
     x = (u - cam.cx) / cam.fx
     y = (v - cam.cy) / cam.fy
     r2 = x * x + y * y
-    radial = (1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3) / (1 + k4 * r2 + k5 * r2 ** 2
-                                                             + k6 * r2 ** 3)
+    radial = ((1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3)
+              / (1 + k4 * r2 + k5 * r2 ** 2 + k6 * r2 ** 3))
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return yd * cam.fy + cam.cy, xd * cam.fx + cam.cx
@@ -203,8 +203,9 @@ def _visual_hull_points(frames: list[_Frame], n: int, gen: torch.Generator) -> n
     poses = []
     for f in frames:
         R, t = f.cam.R.double().numpy(), f.cam.t.double().numpy()
-        poses.append(Pose.from_matrix(np.linalg.inv(np.block([[R, t[:, None]],
-                                                              [np.zeros((1, 3)), np.ones((1, 1))]]))))
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, t
+        poses.append(Pose.from_matrix(np.linalg.inv(w2c)))
     center = cameras_convergence_point(poses)
     dist = np.median([np.linalg.norm(p.center - center) for p in poses])
     cand = (torch.rand((n * 40, 3), generator=gen, dtype=torch.float64) - 0.5) * dist
