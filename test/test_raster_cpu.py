@@ -1,5 +1,7 @@
 """Tile rasteriser vs brute-force reference, gradients, and the gsplat back-end (CUDA only)."""
 
+import functools
+
 import numpy as np
 import pytest
 import torch
@@ -64,15 +66,17 @@ def test_gradients_match_reference():
     m, rc = _scene(n=60, w=32, h=24)
     bg = torch.tensor([0.3, 0.3, 0.3])
     grads = []
-    for r in (raster_cpu.render, raster_reference.render):
+    fused = functools.partial(raster_cpu.render, fused=True)
+    for r in (raster_cpu.render, raster_reference.render, fused):
         mm = m.detached().requires_grad_(True)
         mm.sh_degree = 2
         w = torch.linspace(0, 1, 32 * 24 * 3).reshape(24, 32, 3)
         (r(mm, rc, bg).image * w).sum().backward()
         grads.append({k: v.grad.clone() for k, v in mm.params().items()})
     for k in ("means", "sh_dc", "logit_opacities", "log_scales"):
-        a, b = grads[0][k], grads[1][k]
+        a, b, c = grads[0][k], grads[1][k], grads[2][k]
         assert float((a - b).norm() / b.norm().clamp_min(1e-9)) < 0.05, k
+        assert float((a - c).norm() / a.norm().clamp_min(1e-9)) < 1e-4, k
 
 
 def test_gradcheck_float64():
@@ -80,15 +84,17 @@ def test_gradcheck_float64():
     bg = torch.tensor([0.2, 0.1, 0.4], dtype=torch.float64)
     m.sh_degree = 1
 
-    def f(means, dc, logit_o, log_s):
-        mm = m.detached()
-        mm.means, mm.sh_dc, mm.logit_opacities, mm.log_scales = means, dc, logit_o, log_s
-        mm.sh_degree = 1
-        return raster_cpu.render(mm, rc, bg).image
+    for fused in (False, True):
+        def f(means, dc, logit_o, log_s):
+            mm = m.detached()
+            mm.means, mm.sh_dc, mm.logit_opacities, mm.log_scales = means, dc, logit_o, log_s
+            mm.sh_degree = 1
+            out = raster_cpu.render(mm, rc, bg, fused=fused)
+            return out.image, out.alpha
 
-    inputs = tuple(t.detach().clone().requires_grad_(True)
-                   for t in (m.means, m.sh_dc, m.logit_opacities, m.log_scales))
-    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-4, rtol=1e-3)
+        inputs = tuple(t.detach().clone().requires_grad_(True)
+                       for t in (m.means, m.sh_dc, m.logit_opacities, m.log_scales))
+        assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-4, rtol=1e-3)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat back-end needs CUDA")

@@ -21,8 +21,8 @@ import torch
 from torch.utils.checkpoint import checkpoint
 
 from .gaussians import GaussianModel
-from .raster_common import (Projected, RasterCamera, RenderOutput, T_MIN, pixel_alpha,
-                            project)
+from .raster_common import (ALPHA_MAX, ALPHA_MIN, Projected, RasterCamera, RenderOutput, T_MIN,
+                            pixel_alpha, project)
 
 TILE = 16
 
@@ -73,22 +73,85 @@ def _composite(pix: torch.Tensor, m2: torch.Tensor, con: torch.Tensor, op: torch
     return color, w.sum(1)
 
 
+_LOG_TMIN = float(torch.log(torch.tensor(T_MIN)))
+
+
+def _fwd_terms(pix, m2, con, op):
+    """Recomputable forward pieces of the compositing (no autograd)."""
+    dx = pix[:, None, :, 0] - m2[:, :, None, 0]
+    dy = pix[:, None, :, 1] - m2[:, :, None, 1]
+    power = (-0.5 * (con[..., 0, None] * dx * dx + con[..., 2, None] * dy * dy)
+             - con[..., 1, None] * dx * dy)
+    g = torch.exp(torch.clamp_max(power, 0.0))
+    raw = op[..., None] * g
+    alpha = torch.clamp_max(raw, ALPHA_MAX)
+    keep = (power <= 0) & (alpha >= ALPHA_MIN)
+    alpha = alpha * keep
+    l1m = torch.log1p(-alpha)
+    log_t = torch.cumsum(l1m, dim=1)
+    t_excl = torch.exp(log_t - l1m) * (log_t >= _LOG_TMIN)
+    return dx, dy, g, raw, keep, alpha, t_excl
+
+
+class _CompositeFn(torch.autograd.Function):
+    """Front-to-back compositing with a hand-written backward (recomputes the forward terms,
+    so nothing of size tiles x K x 256 is kept between the passes)."""
+
+    @staticmethod
+    def forward(ctx, pix, m2, con, op, col):
+        with torch.no_grad():
+            _, _, _, _, _, alpha, t_excl = _fwd_terms(pix, m2, con, op)
+            w = alpha * t_excl
+            color = torch.einsum("bkp,bkc->bpc", w, col)
+            acc = w.sum(1)
+        ctx.save_for_backward(pix, m2, con, op, col)
+        return color, acc
+
+    @staticmethod
+    def backward(ctx, g_color, g_acc):
+        pix, m2, con, op, col = ctx.saved_tensors
+        dx, dy, g, raw, keep, alpha, t_excl = _fwd_terms(pix, m2, con, op)
+        w = alpha * t_excl
+        if g_acc is None:
+            g_acc = torch.zeros_like(pix[..., 0])
+        if g_color is None:
+            g_color = torch.zeros(pix.shape[0], pix.shape[1], 3, dtype=pix.dtype)
+        # value of one unit of weight of Gaussian k at pixel p
+        val = torch.einsum("bkc,bpc->bkp", col, g_color) + g_acc[:, None, :]
+        wv = w * val
+        behind = wv.sum(1, keepdim=True) - torch.cumsum(wv, dim=1)  # sum over j > k
+        d_alpha = t_excl * val - behind / (1.0 - alpha)
+        d_raw = d_alpha * keep * (raw < ALPHA_MAX)
+        d_op = (d_raw * g).sum(-1)
+        d_pow = d_raw * raw
+        d_dx = -d_pow * (con[..., 0, None] * dx + con[..., 1, None] * dy)
+        d_dy = -d_pow * (con[..., 2, None] * dy + con[..., 1, None] * dx)
+        d_m2 = -torch.stack([d_dx.sum(-1), d_dy.sum(-1)], -1)
+        d_con = torch.stack([(-0.5 * d_pow * dx * dx).sum(-1), (-d_pow * dx * dy).sum(-1),
+                             (-0.5 * d_pow * dy * dy).sum(-1)], -1)
+        d_col = torch.einsum("bkp,bpc->bkc", w, g_color)
+        return None, d_m2, d_con, d_op, d_col
+
+
 def render(model: GaussianModel, cam: RasterCamera, background: torch.Tensor,
            sh_degree: Optional[int] = None, max_batch_elems: int = 1 << 22,
-           checkpoint_above: int = 1 << 25) -> RenderOutput:
+           checkpoint_above: int = 1 << 25, fused: Optional[bool] = None) -> RenderOutput:
     """Render ``model`` from ``cam`` composited over ``background`` [3] (differentiable).
 
-    ``max_batch_elems`` bounds tiles x Gaussians x pixels of one dense batch; when the whole
-    frame needs more than ``checkpoint_above`` such elements the batches are checkpointed.
+    ``max_batch_elems`` bounds tiles x Gaussians x pixels of one dense batch. When the whole
+    frame needs more than ``checkpoint_above`` such elements (or ``fused`` is True) the
+    compositing uses the hand-written backward, which keeps no per-pixel intermediates (it
+    recomputes them); below that, autograd's saved tensors make the backward a little faster.
     """
     deg = model.sh_degree if sh_degree is None else sh_degree
     pr = project(model.means, model.log_scales, model.quats, model.logit_opacities,
                  model.sh_dc, model.sh_rest, cam, deg)
-    return rasterize(pr, cam, background, max_batch_elems, checkpoint_above)
+    return rasterize(pr, cam, background, max_batch_elems, checkpoint_above, fused)
 
 
 def rasterize(pr: Projected, cam: RasterCamera, background: torch.Tensor,
-              max_batch_elems: int = 1 << 22, checkpoint_above: int = 1 << 25) -> RenderOutput:
+              max_batch_elems: int = 1 << 22, checkpoint_above: int = 1 << 25,
+              fused: Optional[bool] = None) -> RenderOutput:
     """Tile rasterisation of already projected Gaussians (shared with other back-ends' tests)."""
     H, W = cam.height, cam.width
     tx, ty = (W + TILE - 1) // TILE, (H + TILE - 1) // TILE
@@ -135,7 +198,9 @@ def rasterize(pr: Projected, cam: RasterCamera, background: torch.Tensor,
         origin = torch.stack([(tiles % tx) * TILE, (tiles // tx) * TILE], -1).to(dt)
         pix = origin[:, None, :] + loc[None, :, :]
         args = (pix, m2_all[g], con_all[g], op_all[g], col_all[g])
-        if use_ckpt:
+        if fused or (fused is None and use_ckpt):
+            c, a = _CompositeFn.apply(*args)
+        elif use_ckpt:
             c, a = checkpoint(_composite, *args, use_reentrant=False)
         else:
             c, a = _composite(*args)
