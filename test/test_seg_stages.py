@@ -128,3 +128,24 @@ def test_metrics_known_values():
     s = scene_metrics({"a": pred, "b": gt}, {"a": gt, "b": gt, "c": gt})
     assert s["mean"]["iou"] == pytest.approx((1 / 3 + 1) / 2)
     assert s["missing_predictions"] == ["c"]
+
+
+def test_fill_small_holes_keeps_large_ones():
+    from ooi_seg_ros.seg.masks import fill_small_holes
+    m = np.zeros((60, 60), bool)
+    m[5:55, 5:55] = True
+    m[10:12, 10:12] = False  # small gap between points
+    m[20:45, 20:45] = False  # a wheel
+    f = fill_small_holes(m, 0.02)
+    assert f[10:12, 10:12].all() and not f[20:45, 20:45].any()
+
+
+def test_alpha_masks_cover_sphere_like_points_mode():
+    from ooi_seg_ros.seg.masks import alpha_masks, point_radii
+    views = _ring_views(2)
+    xyz = _sphere(1500)
+    r = point_radii(xyz, 4, 0.6)
+    a = alpha_masks(xyz, r, views, MaskConfig(closing_kernel=3))
+    p = point_masks(xyz, r, views, MaskConfig(closing_kernel=3))
+    for k in a:
+        assert a[k].sum() >= p[k].sum() and mask_metrics(a[k], p[k])["iou"] > 0.8
