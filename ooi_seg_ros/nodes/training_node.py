@@ -21,6 +21,7 @@ import dataclasses
 import os
 import threading
 import time
+import traceback
 from typing import Optional
 
 import numpy as np
@@ -34,7 +35,7 @@ from std_srvs.srv import Trigger
 from .. import msgconv
 from ..bag import BagWriter
 from ..core.types import Capture, View
-from ..train.gaussians import to_ply_array
+from ..train.gaussians import PLY_FIELDS, to_ply_array
 from ..train.trainer import TrainConfig, train
 from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, guarded, latched_qos,
                      reliable_qos, run_node)
@@ -75,8 +76,8 @@ SPECS = {
 
 def splats_to_pointcloud2(model, stamp, frame_id: str) -> PointCloud2:
     """PointCloud2 with one float32 field per 3DGS PLY property (normals left out)."""
-    arr = to_ply_array(model)
-    fields = {n: np.asarray(arr[n], np.float32) for n in arr.dtype.names
+    arr = to_ply_array(model)  # [N, len(PLY_FIELDS)] float32
+    fields = {n: np.ascontiguousarray(arr[:, i]) for i, n in enumerate(PLY_FIELDS)
               if n not in SPLAT_SKIP_FIELDS}
     return msgconv.fields_to_pointcloud2(fields, stamp, frame_id)
 
@@ -265,7 +266,8 @@ class TrainingNode(Node):
                                 f"{m.get('heldout_psnr')}")
         except Exception as exc:  # noqa: BLE001 — the node keeps running
             self.diag.count("error_training")
-            self.throttle.warn("trainfail", f"training failed: {exc}")
+            self.throttle.warn("trainfail", f"training failed: {type(exc).__name__}: {exc}")
+            self.last_error = traceback.format_exc()
         finally:
             self._busy.release()
 
