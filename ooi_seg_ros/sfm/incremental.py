@@ -150,7 +150,7 @@ class _Keyframe:
     view: View
     xy: np.ndarray  # [n,2] pixel coords (ROS convention, as detected, distorted)
     xn: np.ndarray  # [n,2] normalised undistorted coords
-    desc: np.ndarray  # [n,128] float32, unit length
+    desc: np.ndarray  # [n,128] uint8, unit-length SIFT x 512 (COLMAP's storage; 4x smaller)
     rgb: np.ndarray  # [n,3] uint8 colour at each keypoint
     offset: int  # global id of feature 0
     R_cw: np.ndarray
@@ -225,7 +225,7 @@ class IncrementalSfM:
             kp, desc = kp[first], desc[first]
         xy = kp[:, :2] - 0.5  # COLMAP pixel centres at +0.5 -> ROS
         n = np.linalg.norm(desc, axis=1, keepdims=True)
-        desc = desc / np.maximum(n, 1e-12)
+        desc = np.clip(np.round(desc / np.maximum(n, 1e-12) * 512.0), 0, 255).astype(np.uint8)
         ij = np.clip(np.round(xy).astype(int), 0, [cam.width - 1, cam.height - 1])
         rgb = img[ij[:, 1], ij[:, 0]]
         return xy, desc, rgb
@@ -279,7 +279,11 @@ class IncrementalSfM:
         cfg = self.config
         if len(a.desc) < 2 or len(b.desc) < 2:
             return np.zeros((0, 2), int)
-        sim = a.desc @ b.desc.T
+        da = a.desc.astype(np.float32)
+        db = b.desc.astype(np.float32)
+        da /= np.maximum(np.linalg.norm(da, axis=1, keepdims=True), 1e-12)
+        db /= np.maximum(np.linalg.norm(db, axis=1, keepdims=True), 1e-12)
+        sim = da @ db.T
         dist2 = np.maximum(2.0 - 2.0 * sim, 0.0)
         ia = np.argpartition(dist2, 1, axis=1)[:, :2]
         d_ab = np.take_along_axis(dist2, ia, 1)
