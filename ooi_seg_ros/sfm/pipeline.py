@@ -130,12 +130,25 @@ def reconstruct(capture: Capture, config: Optional[SfmConfig] = None,
     return out_cap, cloud, report
 
 
+def _same_size_on_disk(capture: Capture) -> bool:
+    """True when the first view's image file has the view's size (no --downscale)."""
+    from PIL import Image
+    v = capture.views[0]
+    try:
+        with Image.open(v.source) as im:
+            return im.size == (v.camera.width, v.camera.height)
+    except OSError:
+        return False
+
+
 def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[str | Path],
                          report: dict) -> tuple[Capture, SfmCloud, dict]:
     srcs = [Path(v.source) for v in capture.views if v.source]
     folders = {p.parent for p in srcs}
     tmp = None
-    if len(srcs) == len(capture.views) and len(folders) == 1 and all(p.is_file() for p in srcs):
+    on_disk = (len(srcs) == len(capture.views) and len(folders) == 1
+               and all(p.is_file() for p in srcs) and _same_size_on_disk(capture))
+    if on_disk:  # the photos themselves (not downscaled copies): let pycolmap read them
         images_dir = folders.pop()
     else:  # write the images out for pycolmap
         from PIL import Image
@@ -157,6 +170,12 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
         if tmp is not None:
             tmp.cleanup()
     report["mapping"] = stats
+    if stats["registered_images"] < 0.5 * len(capture.views):
+        msg = (f"only {stats['registered_images']}/{len(capture.views)} images registered; "
+               "use larger images (less --downscale) or a capture with more overlap")
+        LOG.warning(msg)
+        print(f"[sfm] warning: {msg}", file=sys.stderr)
+        report["warning"] = msg
     report["times_s"].update({f"{k}_s": v for k, v in stats["times_s"].items()})
     report["keyframe_selection"] = {"frames_seen": len(capture.views),
                                     "keyframes": stats["registered_images"],
