@@ -3,8 +3,9 @@
 For each simulator capture (scene, views, size) both paths see the same keyframes (every view).
 Printed side by side: keyframes per second through extraction + matching + triangulation,
 seconds per keyframe (median; worst after the first, which loads SIFT), points, mean track
-length, and the median distance of the points to the true surface as a fraction of the object size (the simulator's ``scale``). ``inc_t3`` is the
-incremental cloud restricted to tracks of 3+ keyframes (what its accuracy is at equal support).
+length, and the median distance of the points to the true surface as a fraction of the object
+size (the simulator's ``scale``). ``inc_t3`` is the incremental cloud restricted to tracks of
+3+ keyframes (what its accuracy is at equal support).
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_sfm.py \
         --cases aircraft:60:320x240 tabletop:60:320x240
