@@ -147,14 +147,20 @@ def _splat(uv: np.ndarray, rad: np.ndarray, h: int, w: int) -> np.ndarray:
     if not big.any():
         return mask
     level = np.floor(np.log(rad[big]) / np.log(1.2)).astype(int)
-    pad = int(np.ceil(rad.max())) + 1
+    ub, vb = ui[big], vi[big]
     for lv in np.unique(level):
         sel = level == lv
         r = 1.2 ** lv
-        seeds = np.ones((h + 2 * pad, w + 2 * pad), bool)
-        seeds[vi[big][sel] + pad, ui[big][sel] + pad] = False
+        pad = int(np.ceil(r)) + 1
+        # distance transform on the crop around this bin's discs only
+        x0, x1 = max(0, ub[sel].min() - pad), min(w, ub[sel].max() + pad + 1)
+        y0, y1 = max(0, vb[sel].min() - pad), min(h, vb[sel].max() + pad + 1)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        seeds = np.ones((y1 - y0 + 2 * pad, x1 - x0 + 2 * pad), bool)
+        seeds[vb[sel] - y0 + pad, ub[sel] - x0 + pad] = False
         d = ndimage.distance_transform_edt(seeds)
-        mask |= (d <= r)[pad:pad + h, pad:pad + w]
+        mask[y0:y1, x0:x1] |= (d <= r)[pad:pad + y1 - y0, pad:pad + x1 - x0]
     return mask
 
 
