@@ -112,6 +112,7 @@ def test_cli_train_and_export(sim, tmp_path):
     assert train_cli.run(args) == 0
     rep = json.loads((out / "report.json").read_text())
     assert rep["init"] == "visual_hull" and rep["n_heldout"] == 2
+    assert rep["lpips"].startswith("unavailable")
     assert sorted(p.stem for p in (out / "heldout").iterdir()) == sorted(
         [sim.views[0].key, sim.views[8].key])
     assert (out / "report.html").read_text().count("<img") == 2

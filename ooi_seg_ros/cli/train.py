@@ -47,6 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="YAML file with TrainConfig fields")
     p.add_argument("--sim-views", type=int, default=60, help="views for sim: inputs")
     p.add_argument("--sim-size", default="320x240", help="image size for sim: inputs")
+    p.add_argument("--lpips-weights", default=None,
+                   help="local state-dict file of the LPIPS network (nothing is downloaded; "
+                        "without it LPIPS is reported as unavailable)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -154,8 +157,23 @@ def _png_b64(rgb: np.ndarray) -> str:
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
+def _lpips(result: TrainResult, weights: Optional[str]):
+    """Mean masked LPIPS over the held-out views, or the reason it is unavailable."""
+    import torch
+
+    from ..train.loss import load_lpips
+    net = load_lpips(weights)
+    if net is None:
+        return "unavailable (no local weights file)"
+    with torch.no_grad():
+        vals = [float(net(torch.from_numpy(h.render / 255.0).float(),
+                          torch.from_numpy(h.gt / 255.0).float(), torch.from_numpy(h.mask)))
+                for h in result.heldout]
+    return float(np.mean(vals)) if vals else None
+
+
 def write_outputs(result: TrainResult, masks: Optional[dict], out: Path,
-                  extra: Optional[dict] = None) -> dict:
+                  extra: Optional[dict] = None, lpips_weights: Optional[str] = None) -> dict:
     """splats.ply, training.mcap, heldout/*.png, report.json/html, config.yaml; the report."""
     from PIL import Image
 
@@ -170,7 +188,7 @@ def write_outputs(result: TrainResult, masks: Optional[dict], out: Path,
     rep = result.metrics()
     rep["heldout"] = [{"key": h.key, "psnr": h.psnr, "ssim": h.ssim} for h in result.heldout]
     rep["evals"] = result.evals
-    rep["lpips"] = "unavailable (no local weights file)"
+    rep["lpips"] = _lpips(result, lpips_weights)
     rep.update(extra or {})
     (out / "report.json").write_text(json.dumps(rep, indent=1))
     cfgmod.write_yaml(result.config, out / "config.yaml")
@@ -243,7 +261,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = _config(args)
     capture, masks, pts, cols = load_inputs(args)
     result = train(capture, masks, pts, cfg, init_colors=cols, show_progress=not args.quiet)
-    rep = write_outputs(result, masks, Path(args.out))
+    rep = write_outputs(result, masks, Path(args.out),
+                        lpips_weights=getattr(args, "lpips_weights", None))
     psnr, ssim = rep["heldout_psnr"], rep["heldout_ssim"]
     psnr_s = "n/a" if psnr is None else f"{psnr:.2f} dB"
     ssim_s = "n/a" if ssim is None else f"{ssim:.3f}"
