@@ -15,7 +15,7 @@ from ooi_seg_ros.bag import QOS_PRESETS, BagReader, BagWriter, message_definitio
 from ooi_seg_ros.cli import main as cli_main
 from ooi_seg_ros.core.types import InputError
 
-DATA = Path("/work/shared/data/rosbag2-recorded")
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "rosbag2-recorded"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="shared rosbag2 test bags missing")
 
 

@@ -15,7 +15,7 @@ from ooi_seg_ros.core.types import CameraIntrinsics, Capture, InputError, Pose, 
 
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
-BONSAI = Path("/work/shared/data/mipnerf360-bonsai")
+BONSAI = Path(__file__).resolve().parents[2] / "shared" / "data" / "mipnerf360-bonsai"
 
 
 def _capture(n=4, w=32, h=24, dist=False, seed=0):
