@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-DATA = Path("/work/shared/data/mipnerf360-bonsai")
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mipnerf360-bonsai"
 
 
 def _centers(rec) -> dict[str, np.ndarray]:
