@@ -43,6 +43,7 @@ class TrainConfig:
     lambda_dssim: float = 0.2  # weight of D-SSIM in the photometric loss
     opacity_reg: float = 0.01  # MCMC L1 opacity penalty
     scale_reg: float = 0.01  # MCMC L1 scale penalty
+    bg_alpha_reg: float = 0.1  # penalty on rendered opacity outside the mask (no haze/floaters)
     noise_lr: float = 5e5  # MCMC SGLD noise scale (times the position lr)
     refine_every: int = 100  # relocate / add Gaussians every this many steps
     refine_start: int = 100  # first refinement step
@@ -422,6 +423,12 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
             gt, mask = f.image * m3 + bg * (1 - m3), f.mask
         loss = photometric_loss(out.image, gt, mask, cfg.lambda_dssim)
         total = loss + mcmc.regularisation(model, cfg.opacity_reg, cfg.scale_reg)
+        if mask is not None and cfg.bg_alpha_reg > 0:
+            # background pixels carry no photometric loss, so nothing else stops Gaussians
+            # from spilling opacity there: keep the object's silhouette inside the mask
+            outside = ~mask
+            if bool(outside.any()):
+                total = total + cfg.bg_alpha_reg * out.alpha[outside].mean()
         opt.zero_grad(set_to_none=True)
         if not torch.isfinite(total):
             result.nan_steps += 1
