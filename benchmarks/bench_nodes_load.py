@@ -1,0 +1,187 @@
+"""Load benchmark of the nodes: a 30 Hz camera stream into sfm_node + segmentation_node.
+
+A drone camera at ``--fps`` publishes ``--size`` images with poses for ``--duration`` seconds.
+Rendering 3,600 frames at 1280x720 is out of reach on 2 cores, so ``--unique`` views are
+rendered along the simulated orbit and each is held (same image, same pose) until the next:
+like a drone that hovers between waypoints, the keyframe selector sees enough motion only when
+the view changes. Reported: frames published / received / dropped (by reason), keyframes
+selected and processed, latency from a keyframe's image to the OOI cloud that includes it,
+and resident memory sampled every second (bounded queues: it must level off).
+
+Side by side, in the same process: the same stream into a bare subscriber that only counts
+(what the transport itself delivers), as the baseline.
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_nodes_load.py --duration 120
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import threading
+import time
+
+import psutil
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+from ooi_seg_ros import msgconv
+from ooi_seg_ros.nodes.common import latched_qos, sensor_qos
+from ooi_seg_ros.nodes.segmentation_node import SegmentationNode
+from ooi_seg_ros.nodes.sfm_node import SfmNode
+from ooi_seg_ros.sim import simulate_capture
+
+
+def stream(capture, fps, duration, pubs, stats, stop):
+    """Publishes the held views at ``fps`` on (info, pose, image) publishers."""
+    info_pub, pose_pub, img_pub = pubs
+    views = capture.views
+    n = int(duration * fps)
+    t0 = time.monotonic()
+    base_ns = 1_800_000_000 * 10 ** 9
+    msgs = [(msgconv.rgb_to_image(v.get_image(), msgconv.ns_to_stamp(0), "cam"),
+             msgconv.intrinsics_to_camera_info(v.camera, msgconv.ns_to_stamp(0), "cam"), v)
+            for v in views]
+    for i in range(n):
+        if stop.is_set():
+            break
+        due = t0 + i / fps
+        now = time.monotonic()
+        if due > now:
+            time.sleep(due - now)
+        else:
+            stats["late"] = stats.get("late", 0) + 1
+        img, info, v = msgs[min(int(i / n * len(views)), len(views) - 1)]
+        stamp = msgconv.ns_to_stamp(base_ns + int(i * 1e9 / fps))
+        img.header.stamp = stamp
+        info.header.stamp = stamp
+        pose_pub.publish(msgconv.pose_to_pose_stamped(v.pose, stamp, "map"))
+        info_pub.publish(info)
+        img_pub.publish(img)
+        stats["published"] = stats.get("published", 0) + 1
+        stats.setdefault("pub_time", {})[base_ns + int(i * 1e9 / fps)] = time.monotonic()
+
+
+def run_case(capture, fps, duration, with_nodes: bool) -> dict:
+    ctx = Context()
+    rclpy.init(context=ctx)
+    ns = "/load_nodes" if with_nodes else "/load_base"
+    feeder = Node("feeder", context=ctx, namespace=ns)
+    pubs = (feeder.create_publisher(CameraInfo, "camera_info", sensor_qos()),
+            feeder.create_publisher(PoseStamped, "pose", sensor_qos()),
+            feeder.create_publisher(Image, "image", sensor_qos()))
+    nodes = [feeder]
+    got = {"images": 0, "ooi": []}
+    if with_nodes:
+        sfm = SfmNode(context=ctx, namespace=ns)
+        seg = SegmentationNode(context=ctx, namespace=ns, parameter_overrides=[
+            Parameter("every_n_keyframes", value=10)])
+        nodes += [sfm, seg]
+        feeder.create_subscription(PointCloud2, "ooi/points",
+                                   lambda m: got["ooi"].append((time.monotonic(), m)),
+                                   latched_qos())
+    else:
+        feeder.create_subscription(Image, "image",
+                                   lambda m: got.__setitem__("images", got["images"] + 1),
+                                   sensor_qos())
+    ex = MultiThreadedExecutor(num_threads=4, context=ctx)
+    for n in nodes:
+        ex.add_node(n)
+    spin = threading.Thread(target=ex.spin, daemon=True)
+    spin.start()
+    time.sleep(1.0)
+    proc = psutil.Process()
+    rss: list[float] = []
+    stats: dict = {}
+    stop = threading.Event()
+    pub_thread = threading.Thread(target=stream, args=(capture, fps, duration, pubs, stats,
+                                                       stop), daemon=True)
+    t0 = time.monotonic()
+    pub_thread.start()
+    while pub_thread.is_alive():
+        rss.append(proc.memory_info().rss / 2 ** 20)
+        time.sleep(1.0)
+    out = {"published": stats.get("published", 0), "late_publishes": stats.get("late", 0),
+           "rss_mb_first": rss[1] if len(rss) > 1 else None,
+           "rss_mb_mid": rss[len(rss) // 2] if rss else None,
+           "rss_mb_last": rss[-1] if rss else None}
+    if with_nodes:
+        # let SfM and the last segmentation finish, then measure latency
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and (
+                sfm.keyframes_processed + sfm.diag.counters.get("dropped_backlog", 0)
+                + sfm.diag.counters.get("error_sfm", 0) < sfm.selector.accepted):
+            time.sleep(0.5)
+        t_done_sfm = time.monotonic()
+        seg.trigger()
+        while time.monotonic() < deadline and seg.runs == 0:
+            time.sleep(0.5)
+        time.sleep(1.0)
+        while time.monotonic() < deadline and not seg._busy.acquire(blocking=False):
+            time.sleep(0.5)
+        t_ooi = got["ooi"][-1][0] if got["ooi"] else None
+        last_kf = max(int(k) for k in seg.keyframes) if seg.keyframes else None
+        c = sfm.diag.counters
+        out.update({
+            "received_by_sfm_node": c.get("images", 0),
+            "dropped": {k: v for k, v in c.items() if k.startswith("dropped") and v},
+            "skipped": {k: v for k, v in c.items() if k.startswith("skipped") and v},
+            "keyframes": sfm.selector.accepted, "keyframes_processed": sfm.keyframes_processed,
+            "sfm_points": int(sfm.diag.values.get("points", 0)),
+            "segmentation_runs": seg.runs,
+            "ooi_points": len(msgconv.pointcloud2_to_xyzrgb(got["ooi"][-1][1])[0])
+            if got["ooi"] else 0,
+            "sfm_backlog_after_stream_s": round(t_done_sfm - (t0 + duration), 1),
+            "latency_last_keyframe_to_ooi_s": round(t_ooi - stats["pub_time"][last_kf], 1)
+            if t_ooi and last_kf in stats["pub_time"] else None,
+            "keyframe_s": round(sfm.diag.timings.get("keyframe", 0.0), 2),
+            "segment_s": round(seg.diag.timings.get("segment", 0.0), 1),
+        })
+        sfm.close()
+    else:
+        out["received_by_subscriber"] = got["images"]
+    ex.shutdown(timeout_sec=5)
+    for n in nodes:
+        n.destroy_node()
+    rclpy.shutdown(context=ctx)
+    out["peak_rss_mb_process"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="aircraft")
+    ap.add_argument("--size", default="1280x720")
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--duration", type=float, default=120.0)
+    ap.add_argument("--unique", type=int, default=60, help="views rendered along the orbit")
+    ap.add_argument("--baseline-duration", type=float, default=20.0)
+    args = ap.parse_args()
+    w, h = (int(x) for x in args.size.split("x"))
+    t = time.monotonic()
+    cap = simulate_capture(args.scene, n_views=args.unique, width=w, height=h, seed=0,
+                           supersample=1).capture
+    print(f"rendered {args.unique} views {w}x{h} in {time.monotonic() - t:.0f} s", flush=True)
+    base = run_case(cap, args.fps, args.baseline_duration, with_nodes=False)
+    print(f"baseline (bare subscriber, {args.baseline_duration:.0f} s): {base}", flush=True)
+    res = run_case(cap, args.fps, args.duration, with_nodes=True)
+    print(f"nodes (sfm_node + segmentation_node, {args.duration:.0f} s): {res}", flush=True)
+    print("\n| case | s | published | received | dropped | keyframes (processed) | "
+          "latency kf->OOI s | RSS MB first/mid/last |")
+    print("|---|---|---|---|---|---|---|---|")
+    print(f"| bare subscriber | {args.baseline_duration:.0f} | {base['published']} | "
+          f"{base['received_by_subscriber']} | - | - | - | {base['rss_mb_first']:.0f}/"
+          f"{base['rss_mb_mid']:.0f}/{base['rss_mb_last']:.0f} |")
+    print(f"| sfm+segmentation nodes | {args.duration:.0f} | {res['published']} | "
+          f"{res['received_by_sfm_node']} | {res['dropped']} | {res['keyframes']} "
+          f"({res['keyframes_processed']}) | {res['latency_last_keyframe_to_ooi_s']} | "
+          f"{res['rss_mb_first']:.0f}/{res['rss_mb_mid']:.0f}/{res['rss_mb_last']:.0f} |")
+
+
+if __name__ == "__main__":
+    main()
