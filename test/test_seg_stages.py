@@ -149,3 +149,14 @@ def test_alpha_masks_cover_sphere_like_points_mode():
     p = point_masks(xyz, r, views, MaskConfig(closing_kernel=3))
     for k in a:
         assert a[k].sum() >= p[k].sum() and mask_metrics(a[k], p[k])["iou"] > 0.8
+
+
+def test_splat_discs_with_centres_outside_the_image():
+    """Discs centred up to one radius outside the frame draw their inner part, no crash."""
+    from ooi_seg_ros.seg.masks import _splat
+    uv = np.array([[-3.0, 10.0], [25.0, -2.0], [41.0, 29.0], [20.0, 15.0]])
+    rad = np.array([5.0, 4.0, 6.0, 3.0])
+    m = _splat(uv, rad, 30, 40)
+    assert m.shape == (30, 40)
+    assert m[10, 0] and m[0, 25] and m[29, 39] and m[15, 20]
+    assert not m[15, 10]

@@ -15,6 +15,7 @@ import collections
 import dataclasses
 import threading
 import time
+import traceback
 from typing import Optional
 
 from geometry_msgs.msg import PoseStamped
@@ -81,6 +82,7 @@ class SegmentationNode(Node):
         self._busy = threading.Lock()
         self.runs = 0
         self.last_result = None
+        self.last_error: Optional[str] = None
 
         rq = reliable_qos(depth=50)
         self.create_subscription(Image, "keyframe/image", self.on_kf_image, rq)
@@ -175,7 +177,8 @@ class SegmentationNode(Node):
                                 f"{len(result.masks)} masks")
         except Exception as exc:  # noqa: BLE001 — the node keeps running
             self.diag.count("error_segmentation")
-            self.throttle.warn("segfail", f"segmentation failed: {exc}")
+            self.last_error = traceback.format_exc()
+            self.throttle.warn("segfail", f"segmentation failed: {type(exc).__name__}: {exc}")
         finally:
             self._busy.release()
 

@@ -152,15 +152,17 @@ def _splat(uv: np.ndarray, rad: np.ndarray, h: int, w: int) -> np.ndarray:
         sel = level == lv
         r = 1.2 ** lv
         pad = int(np.ceil(r)) + 1
-        # distance transform on the crop around this bin's discs only
-        x0, x1 = max(0, ub[sel].min() - pad), min(w, ub[sel].max() + pad + 1)
-        y0, y1 = max(0, vb[sel].min() - pad), min(h, vb[sel].max() + pad + 1)
+        # distance transform on the box around this bin's discs only (the box may extend past
+        # the image: centres up to one radius outside still draw their inner part)
+        X0, X1 = ub[sel].min() - pad, ub[sel].max() + pad + 1
+        Y0, Y1 = vb[sel].min() - pad, vb[sel].max() + pad + 1
+        x0, x1, y0, y1 = max(0, X0), min(w, X1), max(0, Y0), min(h, Y1)
         if x0 >= x1 or y0 >= y1:
             continue
-        seeds = np.ones((y1 - y0 + 2 * pad, x1 - x0 + 2 * pad), bool)
-        seeds[vb[sel] - y0 + pad, ub[sel] - x0 + pad] = False
+        seeds = np.ones((Y1 - Y0, X1 - X0), bool)
+        seeds[vb[sel] - Y0, ub[sel] - X0] = False
         d = ndimage.distance_transform_edt(seeds)
-        mask[y0:y1, x0:x1] |= (d <= r)[pad:pad + y1 - y0, pad:pad + x1 - x0]
+        mask[y0:y1, x0:x1] |= (d <= r)[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0]
     return mask
 
 
