@@ -259,3 +259,58 @@ def run_node(node_factory: Callable[[], Node], args: Optional[list[str]] = None,
                 close()
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+class KeyframeAssembler:
+    """Pairs ``keyframe/image``, ``keyframe/camera_info`` and ``keyframe/pose`` by exact stamp.
+
+    ``keyframes`` is an ordered {stamp_ns: View}; at most ``max_keyframes`` are kept (the
+    oldest go first, reported to ``on_evict``) and at most ``max_pending`` incomplete stamps
+    wait for their missing parts. Both are counted in ``diag``. Thread-safe.
+    """
+
+    PARTS = ("image", "info", "pose")
+
+    def __init__(self, diag: Diagnostics, max_keyframes: int, max_pending: int = 100,
+                 on_evict: Optional[Callable[[int], None]] = None) -> None:
+        import collections
+
+        self.diag = diag
+        self.max_keyframes = max_keyframes
+        self.max_pending = max_pending
+        self.on_evict = on_evict
+        self.keyframes: "collections.OrderedDict[int, Any]" = collections.OrderedDict()
+        self._parts: dict[int, dict] = {}
+        self.lock = threading.Lock()
+
+    def add(self, stamp_ns: int, part: str, value: Any) -> bool:
+        """Stores one part; True when it completed a keyframe."""
+        from ..core.types import View
+
+        done = False
+        with self.lock:
+            parts = self._parts.setdefault(stamp_ns, {})
+            parts[part] = value
+            if len(parts) == len(self.PARTS):
+                del self._parts[stamp_ns]
+                self.keyframes[stamp_ns] = View(key=str(stamp_ns), stamp_ns=stamp_ns,
+                                                camera=parts["info"], pose=parts["pose"],
+                                                image=parts["image"])
+                done = True
+                while len(self.keyframes) > self.max_keyframes:
+                    old, _ = self.keyframes.popitem(last=False)
+                    self.diag.count("dropped_old_keyframes")
+                    if self.on_evict:
+                        self.on_evict(old)
+            while len(self._parts) > self.max_pending:  # parts whose siblings never came
+                self._parts.pop(next(iter(self._parts)))
+                self.diag.count("dropped_incomplete_keyframe")
+        self.diag.set("keyframes", len(self.keyframes))
+        return done
+
+    def views(self) -> list:
+        with self.lock:
+            return list(self.keyframes.values())
+
+    def __len__(self) -> int:
+        return len(self.keyframes)

@@ -11,7 +11,6 @@ re-published whenever the mesh changes), plus ``diagnostics``.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import threading
 import time
@@ -27,8 +26,8 @@ from visualization_msgs.msg import Marker
 from .. import msgconv
 from ..core.types import Capture, View
 from ..seg.pipeline import SegmentationConfig, make_config, segment
-from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, guarded, latched_qos,
-                     reliable_qos, run_node)
+from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle, guarded,
+                     latched_qos, reliable_qos, run_node)
 
 
 @dataclasses.dataclass
@@ -73,9 +72,8 @@ class SegmentationNode(Node):
         self.diag = Diagnostics(self)
         self.throttle = Throttle(self)
         self._lock = threading.Lock()
-        # stamp_ns -> partial keyframe {image, info, pose}
-        self._parts: dict[int, dict] = {}
-        self.keyframes: "collections.OrderedDict[int, View]" = collections.OrderedDict()
+        self.assembler = KeyframeAssembler(self.diag, self.cfg.max_keyframes)
+        self.keyframes = self.assembler.keyframes  # {stamp_ns: View}, capture order
         self._points_msg: Optional[PointCloud2] = None
         self._obs_msg: Optional[PointCloud2] = None
         self._new_since_run = 0
@@ -98,22 +96,8 @@ class SegmentationNode(Node):
 
     # ---- inputs -------------------------------------------------------------------------
     def _part(self, stamp_ns: int, key: str, value) -> None:
-        with self._lock:
-            part = self._parts.setdefault(stamp_ns, {})
-            part[key] = value
-            if len(part) == 3:
-                del self._parts[stamp_ns]
-                view = View(key=str(stamp_ns), stamp_ns=stamp_ns, camera=part["info"],
-                            pose=part["pose"], image=part["image"])
-                self.keyframes[stamp_ns] = view
-                while len(self.keyframes) > self.cfg.max_keyframes:
-                    self.keyframes.popitem(last=False)
-                    self.diag.count("dropped_old_keyframes")
-                self._new_since_run += 1
-            while len(self._parts) > 100:  # halves that never completed
-                self._parts.pop(next(iter(self._parts)))
-                self.diag.count("dropped_incomplete_keyframe")
-        self.diag.set("keyframes", len(self.keyframes))
+        if self.assembler.add(stamp_ns, key, value):
+            self._new_since_run += 1
         self._maybe_run()
 
     @guarded("dropped_keyframe_image")
@@ -158,8 +142,7 @@ class SegmentationNode(Node):
     def _run(self) -> None:
         try:
             t0 = time.monotonic()
-            with self._lock:
-                views = list(self.keyframes.values())
+            views = self.assembler.views()
             if self._points_msg is None or len(views) < 2:
                 self.throttle.warn("segnodata", "segment: need the SfM cloud and >= 2 keyframes")
                 return

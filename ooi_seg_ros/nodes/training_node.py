@@ -16,7 +16,6 @@ being written in flushed chunks, stays readable up to its last chunk even after 
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import os
 import threading
@@ -34,11 +33,11 @@ from std_srvs.srv import Trigger
 
 from .. import msgconv
 from ..bag import BagWriter
-from ..core.types import Capture, View
+from ..core.types import Capture
 from ..train.gaussians import PLY_FIELDS, to_ply_array
 from ..train.trainer import TrainConfig, train
-from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, guarded, latched_qos,
-                     reliable_qos, run_node)
+from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle, guarded,
+                     latched_qos, reliable_qos, run_node)
 
 SPLAT_SKIP_FIELDS = ("nx", "ny", "nz")  # the PLY's unused normals are not published
 
@@ -94,9 +93,10 @@ class TrainingNode(Node):
         self.diag = Diagnostics(self)
         self.throttle = Throttle(self)
         self._lock = threading.Lock()
-        self._parts: dict[int, dict] = {}
-        self.keyframes: "collections.OrderedDict[int, View]" = collections.OrderedDict()
         self.masks: dict[int, np.ndarray] = {}
+        self.assembler = KeyframeAssembler(self.diag, self.cfg.max_keyframes,
+                                           on_evict=lambda stamp: self.masks.pop(stamp, None))
+        self.keyframes = self.assembler.keyframes  # {stamp_ns: View}, capture order
         self.ooi_xyz: Optional[np.ndarray] = None
         self.ooi_rgb: Optional[np.ndarray] = None
         self._ooi_sizes: list[int] = []
@@ -149,22 +149,7 @@ class TrainingNode(Node):
     # ---- inputs -------------------------------------------------------------------------
     def _part(self, msg, stamp_ns: int, key: str, value, topic: str) -> None:
         self._record(topic, msg, stamp_ns)
-        with self._lock:
-            part = self._parts.setdefault(stamp_ns, {})
-            part[key] = value
-            if len(part) == 3:
-                del self._parts[stamp_ns]
-                self.keyframes[stamp_ns] = View(key=str(stamp_ns), stamp_ns=stamp_ns,
-                                                camera=part["info"], pose=part["pose"],
-                                                image=part["image"])
-                while len(self.keyframes) > self.cfg.max_keyframes:
-                    old, _ = self.keyframes.popitem(last=False)
-                    self.masks.pop(old, None)
-                    self.diag.count("dropped_old_keyframes")
-            while len(self._parts) > 100:
-                self._parts.pop(next(iter(self._parts)))
-                self.diag.count("dropped_incomplete_keyframe")
-        self.diag.set("keyframes", len(self.keyframes))
+        self.assembler.add(stamp_ns, key, value)
 
     @guarded("dropped_keyframe_image")
     def on_kf_image(self, msg: Image) -> None:
@@ -207,7 +192,7 @@ class TrainingNode(Node):
         return max(s) - min(s) <= self.cfg.stable_change * max(s)
 
     def ready(self) -> tuple[bool, str]:
-        with self._lock:
+        with self.assembler.lock, self._lock:
             n = sum(1 for k in self.keyframes if k in self.masks)
         if self.ooi_xyz is None:
             return False, "no OOI cloud received yet"
@@ -217,7 +202,7 @@ class TrainingNode(Node):
 
     def _maybe_auto_start(self) -> None:
         if self.cfg.auto_start and self.runs == 0 and self.ooi_is_stable() and self.ready()[0]:
-            with self._lock:
+            with self.assembler.lock, self._lock:
                 all_masked = all(k in self.masks for k in self.keyframes)
             if all_masked:
                 self.start()
@@ -238,7 +223,7 @@ class TrainingNode(Node):
     def _train(self) -> None:
         try:
             t0 = time.monotonic()
-            with self._lock:
+            with self.assembler.lock, self._lock:
                 views = [v for k, v in self.keyframes.items() if k in self.masks]
                 masks = {str(k): self.masks[k] for k in self.keyframes if k in self.masks}
             capture = Capture(views=views, source="ros")
