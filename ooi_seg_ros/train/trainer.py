@@ -43,7 +43,7 @@ class TrainConfig:
     lambda_dssim: float = 0.2  # weight of D-SSIM in the photometric loss
     opacity_reg: float = 0.01  # MCMC L1 opacity penalty
     scale_reg: float = 0.01  # MCMC L1 scale penalty
-    bg_alpha_reg: float = 0.1  # penalty on rendered opacity outside the mask (no haze/floaters)
+    bg_alpha_reg: float = 0.0  # penalty on opacity outside the mask (removes haze; costs PSNR)
     noise_lr: float = 5e5  # MCMC SGLD noise scale (times the position lr)
     refine_every: int = 100  # relocate / add Gaussians every this many steps
     refine_start: int = 100  # first refinement step
