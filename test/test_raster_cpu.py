@@ -1,4 +1,5 @@
-"""Tile rasteriser vs brute-force reference, gradients, and the gsplat back-end (CUDA only)."""
+"""Tile rasteriser (compiled kernel and pure-torch paths) vs brute-force reference, gradients,
+and the gsplat back-end (CUDA only)."""
 
 import functools
 
@@ -8,11 +9,23 @@ import torch
 
 from ooi_seg_ros.core.geometry import look_at
 from ooi_seg_ros.core.types import CameraIntrinsics
-from ooi_seg_ros.train import raster_cpu, raster_reference
+from ooi_seg_ros.train import raster_cpu, raster_kernel, raster_reference
 from ooi_seg_ros.train.gaussians import init_from_points
 from ooi_seg_ros.train.raster_common import RasterCamera
 
 torch.set_num_threads(1)
+
+# both compositing paths: the compiled kernel (must build here: g++ is a test prerequisite)
+# and the pure-torch fallback
+PATHS = pytest.mark.parametrize("kernel", [True, False], ids=["kernel", "torch"])
+
+
+def _render(kernel):
+    return functools.partial(raster_cpu.render, kernel=kernel)
+
+
+def test_kernel_builds():
+    assert raster_kernel.available(), raster_kernel.unavailable_reason()
 
 
 def _scene(n=200, w=48, h=36, seed=0, dtype=torch.float32):
@@ -32,10 +45,11 @@ def _scene(n=200, w=48, h=36, seed=0, dtype=torch.float32):
     return m, rc
 
 
-def test_tile_matches_reference():
+@PATHS
+def test_tile_matches_reference(kernel):
     m, rc = _scene()
     bg = torch.tensor([0.1, 0.5, 0.9])
-    a = raster_cpu.render(m, rc, bg)
+    a = _render(kernel)(m, rc, bg)
     b = raster_reference.render(m, rc, bg)
     assert a.image.shape == (36, 48, 3)
     assert a.n_intersections > b.n_intersections > 100  # tiles are shared by Gaussians
@@ -44,12 +58,13 @@ def test_tile_matches_reference():
     assert float((a.alpha - b.alpha).abs().max()) < 2e-2
 
 
-def test_background_and_empty_scene():
+@PATHS
+def test_background_and_empty_scene(kernel):
     m, rc = _scene(n=5)
     with torch.no_grad():
         m.means += 100.0  # all behind / outside
     bg = torch.tensor([0.2, 0.4, 0.6])
-    out = raster_cpu.render(m, rc, bg)
+    out = _render(kernel)(m, rc, bg)
     assert torch.allclose(out.image, bg.expand(36, 48, 3))
     assert int((out.radii > 0).sum()) == 0
 
@@ -57,26 +72,43 @@ def test_background_and_empty_scene():
 def test_small_batches_same_image():
     m, rc = _scene()
     bg = torch.zeros(3)
-    a = raster_cpu.render(m, rc, bg)
-    b = raster_cpu.render(m, rc, bg, max_batch_elems=2000, checkpoint_above=0)
+    a = raster_cpu.render(m, rc, bg, kernel=False)
+    b = raster_cpu.render(m, rc, bg, max_batch_elems=2000, checkpoint_above=0, kernel=False)
     assert torch.allclose(a.image, b.image, atol=1e-6)
+    c = raster_cpu.render(m, rc, bg, kernel=True)
+    assert torch.allclose(a.image, c.image, atol=1e-5)
+    assert torch.allclose(a.alpha, c.alpha, atol=1e-5)
+
+
+def test_kernel_odd_size_and_opaque_stack():
+    """Partial edge tiles, and opaque Gaussians stacked so pixels terminate early."""
+    m, rc = _scene(n=300, w=37, h=21, seed=5)
+    with torch.no_grad():
+        m.logit_opacities.fill_(6.0)  # alpha clamps at 0.99: early termination everywhere
+    bg = torch.tensor([0.5, 0.2, 0.1])
+    a = raster_cpu.render(m, rc, bg, kernel=True)
+    b = raster_cpu.render(m, rc, bg, kernel=False)
+    assert a.image.shape == (21, 37, 3)
+    assert float((a.image - b.image).abs().max()) < 1e-4
+    assert float((a.alpha - b.alpha).abs().max()) < 1e-4
 
 
 def test_gradients_match_reference():
     m, rc = _scene(n=60, w=32, h=24)
     bg = torch.tensor([0.3, 0.3, 0.3])
     grads = []
-    fused = functools.partial(raster_cpu.render, fused=True)
-    for r in (raster_cpu.render, raster_reference.render, fused):
+    fused = functools.partial(raster_cpu.render, fused=True, kernel=False)
+    for r in (_render(False), raster_reference.render, fused, _render(True)):
         mm = m.detached().requires_grad_(True)
         mm.sh_degree = 2
         w = torch.linspace(0, 1, 32 * 24 * 3).reshape(24, 32, 3)
         (r(mm, rc, bg).image * w).sum().backward()
         grads.append({k: v.grad.clone() for k, v in mm.params().items()})
     for k in ("means", "sh_dc", "logit_opacities", "log_scales"):
-        a, b, c = grads[0][k], grads[1][k], grads[2][k]
+        a, b, c, d = grads[0][k], grads[1][k], grads[2][k], grads[3][k]
         assert float((a - b).norm() / b.norm().clamp_min(1e-9)) < 0.05, k
         assert float((a - c).norm() / a.norm().clamp_min(1e-9)) < 1e-4, k
+        assert float((a - d).norm() / a.norm().clamp_min(1e-9)) < 1e-4, k
 
 
 def test_gradcheck_float64():
@@ -84,12 +116,12 @@ def test_gradcheck_float64():
     bg = torch.tensor([0.2, 0.1, 0.4], dtype=torch.float64)
     m.sh_degree = 1
 
-    for fused in (False, True):
+    for fused, kernel in ((False, False), (True, False), (False, True)):
         def f(means, dc, logit_o, log_s):
             mm = m.detached()
             mm.means, mm.sh_dc, mm.logit_opacities, mm.log_scales = means, dc, logit_o, log_s
             mm.sh_degree = 1
-            out = raster_cpu.render(mm, rc, bg, fused=fused)
+            out = raster_cpu.render(mm, rc, bg, fused=fused, kernel=kernel)
             return out.image, out.alpha
 
         inputs = tuple(t.detach().clone().requires_grad_(True)
@@ -114,3 +146,21 @@ def test_gsplat_unavailable_without_cuda():
     from ooi_seg_ros.train.trainer import choose_backend
     if not gsplat_available():
         assert choose_backend("auto") == "cpu"
+
+
+def test_kernel_fallback_when_build_impossible(monkeypatch, tmp_path, caplog):
+    """No compiler: the loader logs why once and the rasteriser uses the torch path."""
+    monkeypatch.setattr(raster_kernel, "_lib", None)
+    monkeypatch.setattr(raster_kernel, "_tried", False)
+    monkeypatch.setenv("OOI_SEG_KERNEL_DIR", str(tmp_path))
+    monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
+    with caplog.at_level("WARNING"):
+        assert not raster_kernel.available()
+    assert "pure-torch" in caplog.text and raster_kernel.unavailable_reason()
+    m, rc = _scene(n=40, w=32, h=24)
+    bg = torch.tensor([0.3, 0.3, 0.3])
+    a = raster_cpu.render(m, rc, bg)
+    monkeypatch.setenv("OOI_SEG_NO_KERNEL", "1")
+    b = raster_cpu.render(m, rc, bg, kernel=True)
+    assert torch.allclose(a.image, b.image)
+    assert torch.allclose(a.image, raster_cpu.render(m, rc, bg, kernel=False).image)

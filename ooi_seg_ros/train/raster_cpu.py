@@ -1,16 +1,17 @@
-"""Differentiable tile-based Gaussian rasteriser for the CPU (vectorised torch).
+"""Differentiable tile-based Gaussian rasteriser for the CPU.
 
 Pipeline (as in 3DGS): EWA projection -> 3-sigma square -> list of (tile, Gaussian) pairs ->
 one stable sort by depth then by tile -> per tile, front-to-back alpha compositing with early
-termination -> background. Tiles are 16x16 pixels. Tiles are processed in batches of tiles with
-similar Gaussian counts, padded to the batch maximum, so every step is one dense tensor
-operation; transmittance is a cumulative sum of log(1 - alpha), whose backward is cheap.
-Large batches are wrapped in activation checkpointing so memory stays bounded
-(``max_batch_elems``) at the price of recomputing them in the backward pass.
+termination -> background. Tiles are 16x16 pixels.
 
-Why pure torch and not a C++ extension: with a 2-core CPU the cost is dominated by the dense
-per-tile [tiles, K, 256] arithmetic, which torch already runs vectorised; see BENCHMARKS.md for
-the measured throughput next to the brute-force reference.
+The compositing (the hot part) runs in a compiled C++ kernel (``raster_kernel``) when it can be
+built; otherwise (no compiler, or ``kernel=False``) in the pure-torch path below, logged once.
+Torch path: tiles are processed in batches of tiles with similar Gaussian counts, padded to the
+batch maximum, so every step is one dense tensor operation; transmittance is a cumulative sum
+of log(1 - alpha), whose backward is cheap. Large batches are wrapped in activation
+checkpointing so memory stays bounded (``max_batch_elems``) at the price of recomputing them in
+the backward pass. Both paths give the same image and gradients (tests), see BENCHMARKS.md for
+their speed next to the brute-force reference.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import Optional
 import torch
 from torch.utils.checkpoint import checkpoint
 
+from . import raster_kernel
 from .gaussians import GaussianModel
 from .raster_common import (ALPHA_MAX, ALPHA_MIN, Projected, RasterCamera, RenderOutput, T_MIN,
                             pixel_alpha, project)
@@ -135,9 +137,13 @@ class _CompositeFn(torch.autograd.Function):
 
 def render(model: GaussianModel, cam: RasterCamera, background: torch.Tensor,
            sh_degree: Optional[int] = None, max_batch_elems: int = 1 << 22,
-           checkpoint_above: int = 1 << 25, fused: Optional[bool] = None) -> RenderOutput:
+           checkpoint_above: int = 1 << 25, fused: Optional[bool] = None,
+           kernel: Optional[bool] = None) -> RenderOutput:
     """Render ``model`` from ``cam`` composited over ``background`` [3] (differentiable).
 
+    ``kernel``: True/None use the compiled compositing kernel when it is available (None:
+    silently fall back to torch; True: the same, the fallback is logged by the loader), False
+    forces the pure-torch path, to which the remaining options apply.
     ``max_batch_elems`` bounds tiles x Gaussians x pixels of one dense batch. When the whole
     frame needs more than ``checkpoint_above`` such elements (or ``fused`` is True) the
     compositing uses the hand-written backward, which keeps no per-pixel intermediates (it
@@ -146,12 +152,17 @@ def render(model: GaussianModel, cam: RasterCamera, background: torch.Tensor,
     deg = model.sh_degree if sh_degree is None else sh_degree
     pr = project(model.means, model.log_scales, model.quats, model.logit_opacities,
                  model.sh_dc, model.sh_rest, cam, deg)
-    return rasterize(pr, cam, background, max_batch_elems, checkpoint_above, fused)
+    return rasterize(pr, cam, background, max_batch_elems, checkpoint_above, fused, kernel)
+
+
+def kernel_available() -> bool:
+    """True when the compiled compositing kernel is usable (builds it on first call)."""
+    return raster_kernel.available()
 
 
 def rasterize(pr: Projected, cam: RasterCamera, background: torch.Tensor,
               max_batch_elems: int = 1 << 22, checkpoint_above: int = 1 << 25,
-              fused: Optional[bool] = None) -> RenderOutput:
+              fused: Optional[bool] = None, kernel: Optional[bool] = None) -> RenderOutput:
     """Tile rasterisation of already projected Gaussians (shared with other back-ends' tests)."""
     H, W = cam.height, cam.width
     tx, ty = (W + TILE - 1) // TILE, (H + TILE - 1) // TILE
@@ -159,6 +170,13 @@ def rasterize(pr: Projected, cam: RasterCamera, background: torch.Tensor,
     dt = pr.means2d.dtype
     tile_of, gauss = _tile_pairs(pr, tx, ty)
     counts = torch.bincount(tile_of, minlength=n_tiles)
+    if kernel is not False and not fused and raster_kernel.available():
+        tile_start = torch.zeros(n_tiles + 1, dtype=torch.int64)
+        torch.cumsum(counts, 0, out=tile_start[1:])
+        col, acc = raster_kernel.composite(pr.means2d, pr.conics, pr.opacities,
+                                           pr.colors.to(dt), gauss, tile_start, W, H, tx)
+        img = col + (1.0 - acc)[..., None] * background.to(dt)
+        return RenderOutput(img, acc, pr.radii, int(len(gauss)))
     starts = torch.cumsum(counts, 0) - counts
     # local pixel offsets inside a tile
     ly, lx = torch.meshgrid(torch.arange(TILE, dtype=dt), torch.arange(TILE, dtype=dt),
