@@ -5,8 +5,11 @@ Rendering 3,600 frames at 1280x720 is out of reach on 2 cores, so ``--unique`` v
 rendered along the simulated orbit and each is held (same image, same pose) until the next:
 like a drone that hovers between waypoints, the keyframe selector sees enough motion only when
 the view changes. Reported: frames published / received / dropped (by reason), keyframes
-selected and processed, latency from a keyframe's image to the OOI cloud that includes it,
-and resident memory sampled every second (bounded queues: it must level off).
+selected and processed, images decoded (only keyframe candidates should be), SfM seconds per
+keyframe, latency from the last keyframe's image to the OOI cloud and to its mask, keyframe
+evictions and the bytes of kept keyframe images, and resident memory sampled every second
+(bounded queues and a byte budget: it must level off). ``--budget-mb`` sets the segmentation
+node's ``image_budget_mb`` (default: the node's own) to watch eviction at work.
 
 Side by side, in the same process: the same stream into a bare subscriber that only counts
 (what the transport itself delivers), as the baseline.
@@ -17,6 +20,8 @@ Side by side, in the same process: the same stream into a bare subscriber that o
 from __future__ import annotations
 
 import argparse
+import os
+import pickle
 import resource
 import threading
 import time
@@ -31,7 +36,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from ooi_seg_ros import msgconv
-from ooi_seg_ros.nodes.common import latched_qos, sensor_qos
+from ooi_seg_ros.nodes.common import latched_qos, reliable_qos, sensor_qos
 from ooi_seg_ros.nodes.segmentation_node import SegmentationNode
 from ooi_seg_ros.nodes.sfm_node import SfmNode
 from ooi_seg_ros.sim import simulate_capture
@@ -67,7 +72,7 @@ def stream(capture, fps, duration, pubs, stats, stop):
         stats.setdefault("pub_time", {})[base_ns + int(i * 1e9 / fps)] = time.monotonic()
 
 
-def run_case(capture, fps, duration, with_nodes: bool) -> dict:
+def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -> dict:
     ctx = Context()
     rclpy.init(context=ctx)
     ns = "/load_nodes" if with_nodes else "/load_base"
@@ -76,15 +81,19 @@ def run_case(capture, fps, duration, with_nodes: bool) -> dict:
             feeder.create_publisher(PoseStamped, "pose", sensor_qos()),
             feeder.create_publisher(Image, "image", sensor_qos()))
     nodes = [feeder]
-    got = {"images": 0, "ooi": []}
+    got = {"images": 0, "ooi": [], "mask": {}}
     if with_nodes:
         sfm = SfmNode(context=ctx, namespace=ns)
         seg = SegmentationNode(context=ctx, namespace=ns, parameter_overrides=[
-            Parameter("every_n_keyframes", value=10)])
+            Parameter("every_n_keyframes", value=10),
+            Parameter("image_budget_mb", value=float(budget_mb))])
         nodes += [sfm, seg]
         feeder.create_subscription(PointCloud2, "ooi/points",
                                    lambda m: got["ooi"].append((time.monotonic(), m)),
                                    latched_qos())
+        feeder.create_subscription(  # the time of the latest mask of each keyframe
+            Image, "ooi/mask", lambda m: got["mask"].__setitem__(
+                msgconv.stamp_to_ns(m.header.stamp), time.monotonic()), reliable_qos(100))
     else:
         feeder.create_subscription(Image, "image",
                                    lambda m: got.__setitem__("images", got["images"] + 1),
@@ -124,9 +133,12 @@ def run_case(capture, fps, duration, with_nodes: bool) -> dict:
         time.sleep(1.0)
         while time.monotonic() < deadline and not seg._busy.acquire(blocking=False):
             time.sleep(0.5)
+        time.sleep(2.0)  # the masks of the last run
         t_ooi = got["ooi"][-1][0] if got["ooi"] else None
         last_kf = max(int(k) for k in seg.keyframes) if seg.keyframes else None
+        t_mask = got["mask"].get(last_kf)
         c = sfm.diag.counters
+        sc = seg.diag.counters
         out.update({
             "received_by_sfm_node": c.get("images", 0),
             "dropped": {k: v for k, v in c.items() if k.startswith("dropped") and v},
@@ -139,8 +151,18 @@ def run_case(capture, fps, duration, with_nodes: bool) -> dict:
             "sfm_backlog_after_stream_s": round(t_done_sfm - (t0 + duration), 1),
             "latency_last_keyframe_to_ooi_s": round(t_ooi - stats["pub_time"][last_kf], 1)
             if t_ooi and last_kf in stats["pub_time"] else None,
-            "keyframe_s": round(sfm.diag.timings.get("keyframe", 0.0), 2),
+            "latency_last_keyframe_to_mask_s": round(t_mask - stats["pub_time"][last_kf], 1)
+            if t_mask and last_kf in stats["pub_time"] else None,
+            "images_decoded": c.get("images_decoded", 0),
+            "sfm_downscale": sfm.sfm_factor,
+            "keyframe_s_median": round(sfm.diag.timings.get("keyframe_median", 0.0), 2),
             "segment_s": round(seg.diag.timings.get("segment", 0.0), 1),
+            "seg_keyframes_kept": len(seg.keyframes),
+            "seg_evicted": sc.get("dropped_keyframe_budget", 0)
+            + sc.get("dropped_old_keyframes", 0),
+            "seg_keyframe_image_mb": seg.diag.values.get("keyframe_image_mb"),
+            "seg_image_budget_mb": seg.diag.values.get("image_budget_mb"),
+            "masks_received": len(got["mask"]),
         })
         sfm.close()
     else:
@@ -161,26 +183,44 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=120.0)
     ap.add_argument("--unique", type=int, default=60, help="views rendered along the orbit")
     ap.add_argument("--baseline-duration", type=float, default=20.0)
+    ap.add_argument("--cache", default="",
+                    help="pickle file for the rendered views (rendered and written if missing)")
+    ap.add_argument("--budget-mb", type=float, default=0.0,
+                    help="segmentation node image_budget_mb (0 = its default)")
     args = ap.parse_args()
     w, h = (int(x) for x in args.size.split("x"))
     t = time.monotonic()
-    cap = simulate_capture(args.scene, n_views=args.unique, width=w, height=h, seed=0,
-                           supersample=1).capture
+    key = (args.scene, args.unique, w, h)
+    cap = None
+    if args.cache and os.path.exists(args.cache):
+        with open(args.cache, "rb") as fh:
+            cached = pickle.load(fh)
+        cap = cached["capture"] if cached.get("key") == key else None
+    if cap is None:
+        cap = simulate_capture(args.scene, n_views=args.unique, width=w, height=h, seed=0,
+                               supersample=1).capture
+        for v in cap.views:
+            v.get_image()
+        if args.cache:
+            with open(args.cache, "wb") as fh:
+                pickle.dump({"key": key, "capture": cap}, fh)
     print(f"rendered {args.unique} views {w}x{h} in {time.monotonic() - t:.0f} s", flush=True)
     base = run_case(cap, args.fps, args.baseline_duration, with_nodes=False)
     print(f"baseline (bare subscriber, {args.baseline_duration:.0f} s): {base}", flush=True)
-    res = run_case(cap, args.fps, args.duration, with_nodes=True)
+    res = run_case(cap, args.fps, args.duration, with_nodes=True, budget_mb=args.budget_mb)
     print(f"nodes (sfm_node + segmentation_node, {args.duration:.0f} s): {res}", flush=True)
-    print("\n| case | s | published | received | dropped | keyframes (processed) | "
-          "latency kf->OOI s | RSS MB first/mid/last |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("\n| case | s | published | received | decoded | dropped | keyframes (processed) | "
+          "SfM s/keyframe | kf->OOI cloud / mask s | RSS MB first/mid/last |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     print(f"| bare subscriber | {args.baseline_duration:.0f} | {base['published']} | "
-          f"{base['received_by_subscriber']} | - | - | - | {base['rss_mb_first']:.0f}/"
-          f"{base['rss_mb_mid']:.0f}/{base['rss_mb_last']:.0f} |")
-    print(f"| sfm+segmentation nodes | {args.duration:.0f} | {res['published']} | "
-          f"{res['received_by_sfm_node']} | {res['dropped']} | {res['keyframes']} "
-          f"({res['keyframes_processed']}) | {res['latency_last_keyframe_to_ooi_s']} | "
-          f"{res['rss_mb_first']:.0f}/{res['rss_mb_mid']:.0f}/{res['rss_mb_last']:.0f} |")
+          f"{base['received_by_subscriber']} | - | - | - | - | - | {base['rss_mb_first']:.0f} / "
+          f"{base['rss_mb_mid']:.0f} / {base['rss_mb_last']:.0f} |")
+    print(f"| sfm + segmentation nodes | {args.duration:.0f} | {res['published']} | "
+          f"{res['received_by_sfm_node']} | {res['images_decoded']} | {res['dropped']} | "
+          f"{res['keyframes']} ({res['keyframes_processed']}) | {res['keyframe_s_median']} "
+          f"(1/{res['sfm_downscale']}) | {res['latency_last_keyframe_to_ooi_s']} / "
+          f"{res['latency_last_keyframe_to_mask_s']} | {res['rss_mb_first']:.0f} / "
+          f"{res['rss_mb_mid']:.0f} / {res['rss_mb_last']:.0f} |")
 
 
 if __name__ == "__main__":

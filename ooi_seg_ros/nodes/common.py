@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import threading
 import time
 import typing
 from typing import Any, Callable, Optional
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -22,6 +24,9 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
+
+from .. import msgconv
+from ..core.types import CameraIntrinsics, InputError, View
 
 
 def sensor_qos(depth: int = 5) -> QoSProfile:
@@ -261,52 +266,217 @@ def run_node(node_factory: Callable[[], Node], args: Optional[list[str]] = None,
         rclpy.try_shutdown()
 
 
+def physical_memory_bytes() -> int:
+    """Total physical memory of this machine (0 when the OS does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def auto_image_budget_bytes() -> int:
+    """Default byte budget for kept keyframe images: 1/32 of the RAM, within 128..512 MiB.
+
+    A drone's companion computer (8-16 GB) gets 256-512 MiB; the nodes' other state (clouds,
+    features, DDS buffers) and the segmentation/training runs need the rest.
+    """
+    mib = 2 ** 20
+    ram = physical_memory_bytes()
+    return int(min(max(ram // 32, 128 * mib), 512 * mib)) if ram else 256 * mib
+
+
+def downscale_factor(width: int, height: int, max_pixels: int) -> int:
+    """Smallest integer factor f with (width // f) * (height // f) <= max_pixels (>= 1).
+
+    ``max_pixels <= 0`` means "keep full resolution" (1).
+    """
+    if max_pixels <= 0:
+        return 1
+    f = 1
+    while (width // f) * (height // f) > max_pixels and min(width, height) // (f + 1) >= 8:
+        f += 1
+    return f
+
+
+def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
+    """Box-filtered [H//f, W//f, C] uint8 copy (the right/bottom remainder is cropped)."""
+    if factor <= 1:
+        return rgb
+    h, w = rgb.shape[0] // factor, rgb.shape[1] // factor
+    blocks = rgb[:h * factor, :w * factor].reshape(h, factor, w, factor, -1)
+    out = blocks.sum(axis=(1, 3), dtype=np.uint32)
+    out += (factor * factor) // 2  # round to nearest
+    out //= factor * factor
+    return out.astype(np.uint8).reshape(h, w, *rgb.shape[2:])
+
+
+def downscale_camera(cam: CameraIntrinsics, factor: int) -> CameraIntrinsics:
+    """Intrinsics of ``downscale_rgb(image, factor)`` (ROS pixel centres at integers).
+
+    Block ``i`` averages source pixels ``f*i .. f*i+f-1``, so its centre is at ``f*i + (f-1)/2``
+    in the source: ``c' = (c + 0.5) / f - 0.5``; the cropped remainder does not move it.
+    """
+    if factor <= 1:
+        return cam
+    f = float(factor)
+    return CameraIntrinsics(cam.width // factor, cam.height // factor, cam.fx / f, cam.fy / f,
+                            (cam.cx + 0.5) / f - 0.5, (cam.cy + 0.5) / f - 0.5,
+                            cam.distortion_model, np.array(cam.dist, dtype=float))
+
+
+def upscale_mask(mask: np.ndarray, factor: int, width: int, height: int) -> np.ndarray:
+    """bool [height, width] of a mask rendered at 1/factor (nearest; the edge is replicated)."""
+    if factor <= 1 and mask.shape == (height, width):
+        return mask
+    up = np.repeat(np.repeat(mask, factor, axis=0), factor, axis=1)[:height, :width]
+    if up.shape != (height, width):
+        up = np.pad(up, ((0, height - up.shape[0]), (0, width - up.shape[1])), mode="edge")
+    return up
+
+
+def scale_pixels(xy: np.ndarray, factor: float) -> np.ndarray:
+    """Pixel coordinates [N, 2] in an image ``factor`` times larger (ROS pixel centres)."""
+    return ((np.asarray(xy, np.float64) + 0.5) * factor - 0.5).astype(np.float32)
+
+
+def check_image_msg(msg) -> None:
+    """The checks of ``msgconv.image_to_rgb`` that need no copy of the pixels.
+
+    An image callback at 30 Hz validates every frame with this and decodes only the frames
+    that may become keyframes. Raises InputError naming the fix.
+    """
+    enc = msg.encoding
+    if enc not in msgconv.IMAGE_ENCODINGS:
+        raise InputError(f"image encoding {enc!r} is not supported; publish one of "
+                         f"{sorted(msgconv.IMAGE_ENCODINGS)}")
+    ch, dtype, _ = msgconv.IMAGE_ENCODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise InputError(f"image is {w}x{h}; a camera image must have positive size")
+    if step < w * ch * np.dtype(dtype).itemsize:
+        raise InputError(f"image step {step} is smaller than width {w} x bytes per pixel of "
+                         f"{enc}; the publisher sets step wrongly")
+    if len(msg.data) != h * step:
+        raise InputError(f"image data has {len(msg.data)} bytes, height {h} x step {step} = "
+                         f"{h * step}; the message is truncated or its size fields are wrong")
+
+
 class KeyframeAssembler:
     """Pairs ``keyframe/image``, ``keyframe/camera_info`` and ``keyframe/pose`` by exact stamp.
 
-    ``keyframes`` is an ordered {stamp_ns: View}; at most ``max_keyframes`` are kept (the
-    oldest go first, reported to ``on_evict``) and at most ``max_pending`` incomplete stamps
-    wait for their missing parts. Both are counted in ``diag``. Thread-safe.
+    ``keyframes`` is an ordered {stamp_ns: View} whose images are kept at 1/``factor`` of the
+    source resolution (``downscale``: a fixed factor, or 0 to derive it from the image size and
+    ``max_pixels``) with the matching scaled camera; ``full_cameras`` keeps the source
+    intrinsics so that outputs (masks) can be published at the keyframe's own size.
+
+    Memory is bounded in bytes: when the kept images exceed ``max_bytes`` (or their count
+    exceeds ``max_keyframes``) keyframes are evicted, each counted in ``diag``
+    (``dropped_keyframe_budget`` / ``dropped_old_keyframes``), logged through ``warn`` and
+    reported to ``on_evict``. ``evict_policy`` "redundant" evicts the older of the two kept
+    keyframes whose cameras are closest (the least new view of the object); "oldest" evicts
+    in arrival order. The newest keyframe is never evicted. At most ``max_pending``
+    incomplete stamps wait for their missing parts. Thread-safe.
     """
 
     PARTS = ("image", "info", "pose")
 
     def __init__(self, diag: Diagnostics, max_keyframes: int, max_pending: int = 100,
-                 on_evict: Optional[Callable[[int], None]] = None) -> None:
+                 on_evict: Optional[Callable[[int], None]] = None, max_bytes: int = 0,
+                 downscale: int = 1, max_pixels: int = 0, evict_policy: str = "redundant",
+                 warn: Optional[Callable[[str, str], None]] = None) -> None:
         import collections
 
         self.diag = diag
         self.max_keyframes = max_keyframes
         self.max_pending = max_pending
         self.on_evict = on_evict
+        self.max_bytes = int(max_bytes)
+        self.downscale = int(downscale)
+        self.max_pixels = int(max_pixels)
+        self.evict_policy = evict_policy
+        self.warn = warn
         self.keyframes: "collections.OrderedDict[int, Any]" = collections.OrderedDict()
+        self.full_cameras: dict[int, CameraIntrinsics] = {}
+        self.factors: dict[int, int] = {}
+        self.nbytes = 0
         self._parts: dict[int, dict] = {}
         self.lock = threading.Lock()
 
+    def factor_for(self, cam: CameraIntrinsics) -> int:
+        """The downscale factor applied to a keyframe of camera ``cam``."""
+        if self.downscale > 0:
+            return self.downscale
+        return downscale_factor(cam.width, cam.height, self.max_pixels)
+
     def add(self, stamp_ns: int, part: str, value: Any) -> bool:
         """Stores one part; True when it completed a keyframe."""
-        from ..core.types import View
-
-        done = False
         with self.lock:
             parts = self._parts.setdefault(stamp_ns, {})
             parts[part] = value
-            if len(parts) == len(self.PARTS):
+            complete = len(parts) == len(self.PARTS)
+            if complete:
                 del self._parts[stamp_ns]
-                self.keyframes[stamp_ns] = View(key=str(stamp_ns), stamp_ns=stamp_ns,
-                                                camera=parts["info"], pose=parts["pose"],
-                                                image=parts["image"])
-                done = True
-                while len(self.keyframes) > self.max_keyframes:
-                    old, _ = self.keyframes.popitem(last=False)
-                    self.diag.count("dropped_old_keyframes")
-                    if self.on_evict:
-                        self.on_evict(old)
             while len(self._parts) > self.max_pending:  # parts whose siblings never came
                 self._parts.pop(next(iter(self._parts)))
                 self.diag.count("dropped_incomplete_keyframe")
-        self.diag.set("keyframes", len(self.keyframes))
-        return done
+        if not complete:
+            return False
+        cam, rgb = parts["info"], parts["image"]
+        if rgb.shape[0] != cam.height or rgb.shape[1] != cam.width:
+            self.diag.count("dropped_keyframe_size_mismatch")
+            if self.warn:
+                self.warn("kfsize", f"keyframe {stamp_ns} dropped: image {rgb.shape[1]}x"
+                                    f"{rgb.shape[0]} does not match its camera_info "
+                                    f"{cam.width}x{cam.height}")
+            return False
+        f = self.factor_for(cam)
+        small = np.ascontiguousarray(downscale_rgb(rgb, f))  # outside the lock: ~10 ms
+        view = View(key=str(stamp_ns), stamp_ns=stamp_ns, camera=downscale_camera(cam, f),
+                    pose=parts["pose"], image=small)
+        evicted = []
+        with self.lock:
+            if stamp_ns in self.keyframes:  # a repeated keyframe replaces the old one
+                self.nbytes -= self.keyframes.pop(stamp_ns).image.nbytes
+            self.keyframes[stamp_ns] = view
+            self.full_cameras[stamp_ns] = cam
+            self.factors[stamp_ns] = f
+            self.nbytes += small.nbytes
+            while len(self.keyframes) > 1 and (
+                    len(self.keyframes) > self.max_keyframes
+                    or (self.max_bytes > 0 and self.nbytes > self.max_bytes)):
+                over_count = len(self.keyframes) > self.max_keyframes
+                old = self._victim()
+                gone = self.keyframes.pop(old)
+                self.full_cameras.pop(old, None)
+                self.factors.pop(old, None)
+                self.nbytes -= gone.image.nbytes
+                self.diag.count("dropped_old_keyframes" if over_count
+                                else "dropped_keyframe_budget")
+                evicted.append(old)
+            n, nbytes = len(self.keyframes), self.nbytes
+        for old in evicted:
+            if self.warn:
+                self.warn("kfevict", f"keyframe {old} evicted: kept keyframe images would "
+                                     f"exceed {self.max_bytes / 2 ** 20:.0f} MiB or "
+                                     f"{self.max_keyframes} keyframes (raise image_budget_mb "
+                                     "or image_max_pixels lower)")
+            if self.on_evict:
+                self.on_evict(old)
+        self.diag.set("keyframes", n)
+        self.diag.set("keyframe_image_mb", f"{nbytes / 2 ** 20:.1f}")
+        return True
+
+    def _victim(self) -> int:
+        """Stamp of the keyframe to evict (caller holds the lock; >= 2 keyframes kept)."""
+        stamps = list(self.keyframes)
+        if self.evict_policy == "oldest" or len(stamps) < 3:
+            return stamps[0]
+        c = np.stack([self.keyframes[s].pose.t for s in stamps])  # [N, 3]
+        d = np.linalg.norm(c[:, None, :] - c[None, :, :], axis=2)
+        d[np.arange(len(c)), np.arange(len(c))] = np.inf
+        d[-1, :] = np.inf  # the newest keyframe is never the victim
+        nn = d.min(axis=1)
+        return stamps[int(np.argmin(nn))]  # argmin takes the oldest among ties
 
     def views(self) -> list:
         with self.lock:

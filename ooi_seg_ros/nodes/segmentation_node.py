@@ -7,6 +7,12 @@ and on the ``~/segment`` service (std_srvs/Trigger), in a worker thread. Publish
 (PointCloud2, latched), ``ooi/mesh`` (visualization_msgs/Marker TRIANGLE_LIST, latched) and
 ``ooi/mask`` (mono8, one per keyframe, stamp = the keyframe image's stamp; all keyframes are
 re-published whenever the mesh changes), plus ``diagnostics``.
+
+Memory is bounded in bytes: keyframe images are kept downscaled by an integer factor derived
+from their size (``image_downscale``/``image_max_pixels``) within ``image_budget_mb``; beyond
+it the most redundant keyframe (camera closest to another kept one) is evicted, counted and
+logged. The segmentation runs on those copies; masks are published at each keyframe's own
+size (nearest upsampling of the mask rendered at the working size).
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import time
 import traceback
 from typing import Optional
 
+import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -26,8 +33,9 @@ from visualization_msgs.msg import Marker
 from .. import msgconv
 from ..core.types import Capture, View
 from ..seg.pipeline import SegmentationConfig, make_config, segment
-from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle, guarded,
-                     latched_qos, reliable_qos, run_node)
+from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle,
+                     auto_image_budget_bytes, guarded, latched_qos, reliable_qos, run_node,
+                     upscale_mask)
 
 
 @dataclasses.dataclass
@@ -44,7 +52,21 @@ class SegNodeConfig:
     min_keyframes: int = dataclasses.field(
         default=8, metadata={"doc": "keyframes needed before the first automatic run"})
     max_keyframes: int = dataclasses.field(
-        default=2000, metadata={"doc": "keyframes kept in memory (oldest dropped beyond)"})
+        default=2000, metadata={"doc": "keyframes kept in memory (evicted beyond)"})
+    image_budget_mb: float = dataclasses.field(
+        default=0.0, metadata={"doc": "MiB of kept keyframe images; beyond it keyframes are "
+                                      "evicted (0 = 1/32 of the RAM within 128..512)"})
+    image_downscale: int = dataclasses.field(
+        default=0, metadata={"doc": "keep keyframe images downscaled by this integer factor "
+                                    "(0 = the smallest that brings them to image_max_pixels)"})
+    image_max_pixels: int = dataclasses.field(
+        default=400_000, metadata={"doc": "with image_downscale 0: pixel count kept images "
+                                          "are reduced to"})
+    evict_policy: str = dataclasses.field(
+        default="redundant", metadata={"doc": "which keyframe goes when over budget: redundant "
+                                              "(camera nearest another kept one) or oldest"})
+    qos_depth: int = dataclasses.field(
+        default=10, metadata={"doc": "history depth of the keyframe subscriptions"})
     mask_stride: int = dataclasses.field(
         default=1, metadata={"doc": "publish masks for every k-th keyframe (1 = all)"})
 
@@ -55,6 +77,16 @@ SPECS = {
     "min_keyframes": ParamSpec("keyframes before the first run", 2, 100000),
     "max_keyframes": ParamSpec("keyframes kept in memory", 2, 1000000, read_only=True),
     "mask_stride": ParamSpec("publish masks for every k-th keyframe", 1, 1000),
+    "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
+                                 read_only=True),
+    "image_downscale": ParamSpec("integer downscale of kept images (0 = auto)", 0, 64,
+                                 read_only=True),
+    "image_max_pixels": ParamSpec("pixel count kept images are reduced to (auto)", 10_000,
+                                  100_000_000, read_only=True),
+    "evict_policy": ParamSpec("keyframe evicted over budget", choices=("redundant", "oldest"),
+                              read_only=True),
+    "qos_depth": ParamSpec("history depth of the keyframe subscriptions", 1, 1000,
+                           read_only=True),
     "frame_id": ParamSpec("world frame of outputs", read_only=True),
     "method": ParamSpec("segmentation preset", choices=("ours", "paper"), read_only=True),
 }
@@ -72,7 +104,13 @@ class SegmentationNode(Node):
         self.diag = Diagnostics(self)
         self.throttle = Throttle(self)
         self._lock = threading.Lock()
-        self.assembler = KeyframeAssembler(self.diag, self.cfg.max_keyframes)
+        budget = (int(self.cfg.image_budget_mb * 2 ** 20) if self.cfg.image_budget_mb > 0
+                  else auto_image_budget_bytes())
+        self.assembler = KeyframeAssembler(
+            self.diag, self.cfg.max_keyframes, max_bytes=budget,
+            downscale=self.cfg.image_downscale, max_pixels=self.cfg.image_max_pixels,
+            evict_policy=self.cfg.evict_policy, warn=self.throttle.warn)
+        self.diag.set("image_budget_mb", f"{budget / 2 ** 20:.0f}")
         self.keyframes = self.assembler.keyframes  # {stamp_ns: View}, capture order
         self._points_msg: Optional[PointCloud2] = None
         self._obs_msg: Optional[PointCloud2] = None
@@ -82,7 +120,7 @@ class SegmentationNode(Node):
         self.last_result = None
         self.last_error: Optional[str] = None
 
-        rq = reliable_qos(depth=50)
+        rq = reliable_qos(depth=self.cfg.qos_depth)
         self.create_subscription(Image, "keyframe/image", self.on_kf_image, rq)
         self.create_subscription(CameraInfo, "keyframe/camera_info", self.on_kf_info, rq)
         self.create_subscription(PoseStamped, "keyframe/pose", self.on_kf_pose, rq)
@@ -142,18 +180,27 @@ class SegmentationNode(Node):
     def _run(self) -> None:
         try:
             t0 = time.monotonic()
-            views = self.assembler.views()
+            with self.assembler.lock:
+                views = list(self.assembler.keyframes.values())
+                full = {v.stamp_ns: (self.assembler.full_cameras[v.stamp_ns],
+                                     self.assembler.factors[v.stamp_ns]) for v in views}
             if self._points_msg is None or len(views) < 2:
                 self.throttle.warn("segnodata", "segment: need the SfM cloud and >= 2 keyframes")
                 return
             cloud = msgconv.pointcloud2_to_sfm_cloud(self._points_msg, self._obs_msg, views)
+            if len(cloud.obs_xy) and any(f > 1 for _c, f in full.values()):
+                # observations come in source pixels; the kept views are downscaled
+                f = np.array([full[v.stamp_ns][1] for v in views], np.float64)
+                cloud.obs_xy = ((cloud.obs_xy + 0.5) / f[cloud.obs_view, None]
+                                - 0.5).astype(np.float32)
+                cloud.error = np.asarray(cloud.error) / float(np.median(f))
             capture = Capture(views=views, source="ros")
             self.diag.set_state(f"segmenting {len(cloud)} points over {len(views)} keyframes")
             result = segment(capture, cloud, self.seg_cfg)
             self.last_result = result
             self.runs += 1
             self.diag.timing("segment", time.monotonic() - t0)
-            self._publish(result, views)
+            self._publish(result, views, full)
             for w in getattr(result, "warnings", []) or []:
                 self.throttle.warn("segwarn:" + w[:40], f"segmentation: {w}")
             self.diag.set_state(f"run {self.runs}: {len(result.ooi_cloud)} OOI points, "
@@ -165,7 +212,7 @@ class SegmentationNode(Node):
         finally:
             self._busy.release()
 
-    def _publish(self, result, views: list[View]) -> None:
+    def _publish(self, result, views: list[View], full: dict) -> None:
         stamp = msgconv.ns_to_stamp(views[-1].stamp_ns)
         oc = result.ooi_cloud
         self.pub_points.publish(msgconv.xyzrgb_to_pointcloud2(oc.xyz, oc.rgb, stamp,
@@ -178,6 +225,8 @@ class SegmentationNode(Node):
             mask = result.masks.get(v.key)
             if mask is None:
                 continue
+            cam, f = full[v.stamp_ns]
+            mask = upscale_mask(np.asarray(mask, bool), f, cam.width, cam.height)
             self.pub_mask.publish(msgconv.mask_to_image(mask, msgconv.ns_to_stamp(v.stamp_ns),
                                                         "camera_optical"))
             self.diag.count("masks_published")

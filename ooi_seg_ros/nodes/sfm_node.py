@@ -8,8 +8,16 @@ image's stamp), ``sfm/points`` (PointCloud2 xyz+rgb in ``frame_id``, latched) an
 ``sfm/observations`` (PointCloud2 rows point_index, stamp_sec, stamp_nanosec, u, v: which
 keyframe saw which point where — the segmentation uses visibility), and ``diagnostics``.
 
-SfM runs in a worker thread behind a bounded queue: when the drone produces keyframes faster
-than SfM takes them, the oldest waiting keyframe is dropped and counted, never queued forever.
+Keeping up with a 30 Hz camera: the image callback only checks the message's header and size
+fields (no copy of the pixels) and queues the message; a frame is decoded only when its pose
+(interpolated between pose samples, across lost pose messages up to a tolerance derived from
+the pose rate) passes the keyframe selector's motion test, and only such candidates pay the
+blur test. Keyframes are republished as received. SfM runs on a copy downscaled by an integer
+factor derived from the image size (``sfm_downscale``/``sfm_max_pixels``), in a worker thread
+behind a bounded queue: when the drone produces keyframes faster than SfM takes them, the
+oldest waiting keyframe is dropped and counted, never queued forever. The worker keeps no
+images once a keyframe's features are extracted. Observations are published in the source
+image's pixel coordinates.
 """
 
 from __future__ import annotations
@@ -33,8 +41,9 @@ from ..core.sync import PoseBuffer
 from ..core.types import CameraIntrinsics, InputError, Pose, View
 from ..sfm.incremental import IncrementalConfig, IncrementalSfM
 from ..sfm.keyframes import KeyframeConfig, KeyframeSelector
-from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, guarded, latched_qos,
-                     reliable_qos, run_node, sensor_qos)
+from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, check_image_msg,
+                     downscale_camera, downscale_factor, downscale_rgb, guarded, latched_qos,
+                     reliable_qos, run_node, scale_pixels, sensor_qos)
 from rclpy.node import Node
 
 
@@ -46,7 +55,12 @@ class SfmNodeConfig:
     pose_type: str = dataclasses.field(
         default="pose_stamped", metadata={"doc": "pose_stamped (optical frame) or odometry"})
     pose_tolerance_s: float = dataclasses.field(
-        default=0.1, metadata={"doc": "max gap to the nearest pose sample for interpolation"})
+        default=0.0, metadata={"doc": "max time from an image stamp to each of the two pose "
+                                      "samples it is interpolated between (0 = derived from "
+                                      "the pose rate: (pose_max_lost + 1) pose periods)"})
+    pose_max_lost: int = dataclasses.field(
+        default=4, metadata={"doc": "with pose_tolerance_s 0: consecutive lost pose messages "
+                                    "that interpolation may still bridge"})
     pose_buffer_s: float = dataclasses.field(
         default=10.0, metadata={"doc": "seconds of pose history kept"})
     mount_xyz: str = dataclasses.field(
@@ -59,12 +73,29 @@ class SfmNodeConfig:
         default=30, metadata={"doc": "images kept while waiting for a pose newer than them"})
     publish_every: int = dataclasses.field(
         default=1, metadata={"doc": "publish the cloud every N processed keyframes"})
+    sfm_downscale: int = dataclasses.field(
+        default=0, metadata={"doc": "SfM runs on images downscaled by this integer factor (0 = "
+                                    "the smallest factor that brings them to sfm_max_pixels)"})
+    sfm_max_pixels: int = dataclasses.field(
+        default=400_000, metadata={"doc": "with sfm_downscale 0: pixel count SfM images are "
+                                          "reduced to (feature extraction cost grows with it)"})
+    keyframe_qos_depth: int = dataclasses.field(
+        default=10, metadata={"doc": "history depth of the keyframe publishers (full-size "
+                                     "images held by the middleware)"})
 
 
 SPECS = {
     "pose_type": ParamSpec("pose_stamped (optical frame) or odometry (vehicle + mount)",
                            choices=("pose_stamped", "odometry"), read_only=True),
-    "pose_tolerance_s": ParamSpec("max gap to a pose sample for interpolation (s)", 0.0, 10.0),
+    "pose_tolerance_s": ParamSpec("max gap to a pose sample for interpolation (s, 0 = from "
+                                  "the pose rate)", 0.0, 10.0),
+    "pose_max_lost": ParamSpec("lost pose messages interpolation may bridge", 0, 1000),
+    "sfm_downscale": ParamSpec("integer downscale of SfM images (0 = auto)", 0, 64,
+                               read_only=True),
+    "sfm_max_pixels": ParamSpec("pixel count SfM images are reduced to (auto)", 10_000,
+                                100_000_000, read_only=True),
+    "keyframe_qos_depth": ParamSpec("history depth of the keyframe publishers", 1, 1000,
+                                    read_only=True),
     "pose_buffer_s": ParamSpec("seconds of pose history kept", 0.1, 600.0),
     "queue_size": ParamSpec("keyframes waiting for SfM before dropping", 1, 1000),
     "pending_images": ParamSpec("images waiting for a pose", 1, 1000),
@@ -101,6 +132,7 @@ class SfmNode(Node):
         self.throttle = Throttle(self)
         self.poses = PoseBuffer(max_age_ns=int(self.cfg.pose_buffer_s * 1e9),
                                 tolerance_ns=int(self.cfg.pose_tolerance_s * 1e9))
+        self._pose_dts: collections.deque = collections.deque(maxlen=64)  # recent periods, ns
         self.selector = KeyframeSelector(self.kf_cfg)
         self.sfm = IncrementalSfM(self.sfm_cfg)
         self.camera: Optional[CameraIntrinsics] = None
@@ -110,6 +142,8 @@ class SfmNode(Node):
         self._select_lock = threading.Lock()  # keyframe selection is stateful: one at a time
         self._last_image_ns = -1
         self.keyframes_processed = 0
+        self.keyframe_times: collections.deque = collections.deque(maxlen=200)  # s per kf
+        self.sfm_factor: Optional[int] = None  # downscale of SfM's images (first keyframe)
 
         sq = sensor_qos()
         self.create_subscription(Image, "image", self.on_image, sq)
@@ -119,7 +153,7 @@ class SfmNode(Node):
             self.create_subscription(Odometry, "pose", self.on_odometry, sq)
         else:
             self.create_subscription(PoseStamped, "pose", self.on_pose, sq)
-        rq = reliable_qos(depth=50)
+        rq = reliable_qos(depth=self.cfg.keyframe_qos_depth)
         self.pub_kf_image = self.create_publisher(Image, "keyframe/image", rq)
         self.pub_kf_info = self.create_publisher(CameraInfo, "keyframe/camera_info", rq)
         self.pub_kf_pose = self.create_publisher(PoseStamped, "keyframe/pose", rq)
@@ -148,24 +182,49 @@ class SfmNode(Node):
         self._add_pose(msgconv.stamp_to_ns(msg.header.stamp), cam)
 
     def _add_pose(self, stamp_ns: int, pose: Pose) -> None:
+        last = self.poses.latest_ns
         if not self.poses.add(stamp_ns, pose):
             self.diag.count("dropped_pose")
             self.throttle.warn("pose", f"pose at {stamp_ns} ns rejected (stamps going "
                                        "backwards or invalid); check the pose source")
             return
+        if last is not None:
+            self._pose_dts.append(stamp_ns - last)
+        self.poses.tolerance_ns = self.pose_tolerance_ns()
         self._drain_pending()
+
+    def pose_tolerance_ns(self) -> int:
+        """Tolerance of the pose interpolation: the parameter, or derived from the pose rate.
+
+        Derived: ``(pose_max_lost + 1)`` times the median of the recent pose periods (gaps of
+        lost messages included, so the median stays the nominal period while fewer than half
+        are lost); 0.1 s until two poses have arrived.
+        """
+        if self.cfg.pose_tolerance_s > 0:
+            return int(self.cfg.pose_tolerance_s * 1e9)
+        if not self._pose_dts:
+            return 100_000_000
+        period = float(np.median(np.asarray(self._pose_dts, np.float64)))
+        return int((self.cfg.pose_max_lost + 1) * period)
 
     @guarded("dropped_image")
     def on_image(self, msg: Image) -> None:
-        self._on_rgb(msgconv.stamp_to_ns(msg.header.stamp), msgconv.image_to_rgb(msg))
+        check_image_msg(msg)  # header and sizes only: the pixels are decoded for candidates
+        self._on_frame(msgconv.stamp_to_ns(msg.header.stamp), msg, int(msg.width),
+                       int(msg.height))
 
     @guarded("dropped_image")
     def on_compressed(self, msg: CompressedImage) -> None:
-        self._on_rgb(msgconv.stamp_to_ns(msg.header.stamp), msgconv.compressed_to_rgb(msg))
+        if not len(msg.data):
+            raise InputError("compressed image has no data")
+        self._on_frame(msgconv.stamp_to_ns(msg.header.stamp), msg, None, None)
 
-    def _on_rgb(self, stamp_ns: int, rgb: np.ndarray) -> None:
+    def _on_frame(self, stamp_ns: int, msg, width: Optional[int],
+                  height: Optional[int]) -> None:
+        """Cheap part of an image callback: checks, then queue the message until its pose."""
         self.diag.count("images")
-        if self.camera is None:
+        cam = self.camera
+        if cam is None:
             self.diag.count("dropped_no_camera_info")
             self.throttle.warn("noinfo", "image dropped: no valid camera_info received yet")
             return
@@ -174,15 +233,29 @@ class SfmNode(Node):
             self.throttle.warn("imgstamp", "image dropped: its stamp is not newer than the "
                                            "previous image's")
             return
-        if rgb.shape[1] != self.camera.width or rgb.shape[0] != self.camera.height:
+        if width is not None and (width != cam.width or height != cam.height):
             self.diag.count("dropped_size_mismatch")
-            self.throttle.warn("size", f"image {rgb.shape[1]}x{rgb.shape[0]} does not match "
-                                       f"camera_info {self.camera.width}x{self.camera.height}")
+            self.throttle.warn("size", f"image {width}x{height} does not match camera_info "
+                                       f"{cam.width}x{cam.height}")
             return
         self._last_image_ns = stamp_ns
         with self._lock:
-            self.pending.append((stamp_ns, rgb, self.camera))
+            if len(self.pending) == self.pending.maxlen:
+                self.diag.count("dropped_no_pose")  # the oldest waiting image falls out
+                self.throttle.warn("nopose", f"image dropped: {self.pending.maxlen} images "
+                                             "waiting for a newer pose (pose stream late?)")
+            self.pending.append((stamp_ns, msg, cam))
         self._drain_pending()
+
+    def _decode(self, msg, cam: CameraIntrinsics) -> np.ndarray:
+        self.diag.count("images_decoded")
+        if isinstance(msg, CompressedImage):
+            rgb = msgconv.compressed_to_rgb(msg)
+            if rgb.shape[0] != cam.height or rgb.shape[1] != cam.width:
+                raise InputError(f"compressed image {rgb.shape[1]}x{rgb.shape[0]} does not "
+                                 f"match camera_info {cam.width}x{cam.height}")
+            return rgb
+        return msgconv.image_to_rgb(msg)
 
     def _drain_pending(self) -> None:
         """Moves images whose pose can now be interpolated on to keyframe selection."""
@@ -193,24 +266,33 @@ class SfmNode(Node):
         ready = []
         with self._lock:
             keep = collections.deque(maxlen=self.pending.maxlen)
-            for stamp_ns, rgb, cam in self.pending:
+            for stamp_ns, msg, cam in self.pending:
                 pose = self.poses.lookup(stamp_ns)
                 if pose is not None:
-                    ready.append((stamp_ns, rgb, cam, pose))
+                    ready.append((stamp_ns, msg, cam, pose))
                 elif self.poses.is_too_old(stamp_ns):
                     self.diag.count("dropped_no_pose")
                     self.throttle.warn("nopose", "image dropped: no pose within "
-                                                 f"{self.cfg.pose_tolerance_s} s of its stamp")
+                                                 f"{self.poses.tolerance_ns / 1e9:.3f} s on "
+                                                 "both sides of its stamp")
                 else:
-                    keep.append((stamp_ns, rgb, cam))
+                    keep.append((stamp_ns, msg, cam))
             self.pending = keep
-        for stamp_ns, rgb, cam, pose in ready:
-            view = View(key=str(stamp_ns), stamp_ns=stamp_ns, camera=cam, pose=pose, image=rgb)
-            if not self.selector.offer(view):
+        for stamp_ns, msg, cam, pose in ready:
+            # the selector tests motion on the pose first and decodes only candidates
+            view = View(key=str(stamp_ns), stamp_ns=stamp_ns, camera=cam, pose=pose,
+                        loader=lambda m=msg, c=cam: self._decode(m, c))
+            try:
+                accepted = self.selector.offer(view)
+            except InputError as exc:
+                self.diag.count("dropped_image")
+                self.throttle.warn("decode", f"image {stamp_ns} dropped: {exc}")
+                continue
+            if not accepted:
                 for reason, n in self.selector.dropped.items():
                     self.diag.counters[f"skipped_{reason}"] = n
                 continue
-            self._publish_keyframe(view)
+            self._publish_keyframe(view, msg)
             try:
                 self.work.put_nowait(view)
             except queue.Full:
@@ -223,9 +305,13 @@ class SfmNode(Node):
                     pass
                 self.work.put_nowait(view)
 
-    def _publish_keyframe(self, view: View) -> None:
+    def _publish_keyframe(self, view: View, msg) -> None:
         stamp = msgconv.ns_to_stamp(view.stamp_ns)
-        self.pub_kf_image.publish(msgconv.rgb_to_image(view.image, stamp, "camera_optical"))
+        if isinstance(msg, Image):  # as received: no re-encoding of the pixels
+            self.pub_kf_image.publish(msg)
+        else:
+            self.pub_kf_image.publish(msgconv.rgb_to_image(view.get_image(), stamp,
+                                                           "camera_optical"))
         self.pub_kf_info.publish(msgconv.intrinsics_to_camera_info(view.camera, stamp,
                                                                    "camera_optical"))
         self.pub_kf_pose.publish(msgconv.pose_to_pose_stamped(view.pose, stamp,
@@ -241,18 +327,48 @@ class SfmNode(Node):
                 continue
             t0 = time.monotonic()
             try:
-                self.sfm.add_keyframe(view)
+                sview = self._sfm_view(view)
+                self.sfm.add_keyframe(sview)
+                sview.image = None  # features are extracted: SfM keeps no pixels
             except Exception as exc:  # noqa: BLE001 — keep the node alive, count and report
                 self.diag.count("error_sfm")
                 self.throttle.warn("sfm", f"SfM failed on keyframe {view.key}: {exc}")
                 continue
             self.keyframes_processed += 1
-            self.diag.timing("keyframe", time.monotonic() - t0)
+            self.keyframe_times.append(time.monotonic() - t0)
+            self.diag.timing("keyframe", self.keyframe_times[-1])
+            self.diag.timing("keyframe_median", float(np.median(self.keyframe_times)))
+            if self._stop.is_set():
+                break  # shutting down: the publishers may be gone
             if self.keyframes_processed % self.cfg.publish_every == 0:
-                self.publish_cloud()
+                try:
+                    self.publish_cloud()
+                except Exception as exc:  # noqa: BLE001 — keep the worker alive
+                    self.diag.count("error_publish")
+                    self.throttle.warn("publish", f"publishing the cloud failed: {exc}")
+
+    def _sfm_view(self, view: View) -> View:
+        """The keyframe as SfM sees it: downscaled copy, scaled intrinsics, no full image.
+
+        The factor is fixed by the first keyframe so that all observations share one scale.
+        """
+        cam = view.camera
+        if self.sfm_factor is None:
+            self.sfm_factor = (self.cfg.sfm_downscale if self.cfg.sfm_downscale > 0 else
+                               downscale_factor(cam.width, cam.height, self.cfg.sfm_max_pixels))
+            self.diag.set("sfm_downscale", self.sfm_factor)
+        f = self.sfm_factor
+        small = np.ascontiguousarray(downscale_rgb(view.get_image(), f))
+        view.image, view.loader = None, None  # the full-size frame is published already
+        return View(key=view.key, stamp_ns=view.stamp_ns, camera=downscale_camera(cam, f),
+                    pose=view.pose, image=small)
 
     def publish_cloud(self) -> int:
         cloud = self.sfm.cloud()
+        f = self.sfm_factor or 1
+        if f > 1:  # observations and errors in the source image's pixels
+            cloud = dataclasses.replace(cloud, obs_xy=scale_pixels(cloud.obs_xy, f),
+                                        error=np.asarray(cloud.error) * f)
         stamp = self.get_clock().now().to_msg()
         if cloud.views:
             stamp = msgconv.ns_to_stamp(cloud.views[-1].stamp_ns)

@@ -12,6 +12,11 @@ x y z f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3, latched), ``splat/render``
 ``diagnostics``. Everything it receives and publishes is recorded into an MCAP bag
 (``record_path``) for offline review; the bag is finished on shutdown (SIGINT/SIGTERM) and,
 being written in flushed chunks, stays readable up to its last chunk even after a SIGKILL.
+
+Memory is bounded in bytes: keyframe images are kept at full resolution by default (the
+photometric loss wants every pixel; ``image_downscale`` trades that for memory) within
+``image_budget_mb``, beyond which the most redundant keyframe is evicted (counted, logged);
+masks are kept bit-packed (1/8 of a byte per pixel) and only for kept keyframes.
 """
 
 from __future__ import annotations
@@ -36,8 +41,8 @@ from ..bag import BagWriter
 from ..core.types import Capture
 from ..train.gaussians import PLY_FIELDS, to_ply_array
 from ..train.trainer import TrainConfig, train
-from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle, guarded,
-                     latched_qos, reliable_qos, run_node)
+from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle,
+                     auto_image_budget_bytes, guarded, latched_qos, reliable_qos, run_node)
 
 SPLAT_SKIP_FIELDS = ("nx", "ny", "nz")  # the PLY's unused normals are not published
 
@@ -60,7 +65,22 @@ class TrainNodeConfig:
                                      "ooi_training_<time>.mcap in the working directory, "
                                      "'none' = no recording)"})
     max_keyframes: int = dataclasses.field(
-        default=2000, metadata={"doc": "keyframes kept in memory (oldest dropped beyond)"})
+        default=2000, metadata={"doc": "keyframes kept in memory (evicted beyond)"})
+    image_budget_mb: float = dataclasses.field(
+        default=0.0, metadata={"doc": "MiB of kept keyframe images; beyond it keyframes are "
+                                      "evicted (0 = 1/32 of the RAM within 128..512)"})
+    image_downscale: int = dataclasses.field(
+        default=1, metadata={"doc": "keep (and train on) keyframe images downscaled by this "
+                                    "integer factor (1 = full resolution, 0 = the smallest "
+                                    "factor that brings them to image_max_pixels)"})
+    image_max_pixels: int = dataclasses.field(
+        default=1_000_000, metadata={"doc": "with image_downscale 0: pixel count kept images "
+                                            "are reduced to"})
+    evict_policy: str = dataclasses.field(
+        default="redundant", metadata={"doc": "which keyframe goes when over budget: redundant "
+                                              "(camera nearest another kept one) or oldest"})
+    qos_depth: int = dataclasses.field(
+        default=10, metadata={"doc": "history depth of the keyframe subscriptions"})
 
 
 SPECS = {
@@ -69,6 +89,16 @@ SPECS = {
     "min_keyframes": ParamSpec("keyframes with masks needed to start", 2, 100000),
     "record_path": ParamSpec("MCAP bag recording inputs and outputs", read_only=True),
     "max_keyframes": ParamSpec("keyframes kept in memory", 2, 1000000, read_only=True),
+    "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
+                                 read_only=True),
+    "image_downscale": ParamSpec("integer downscale of kept images (0 = auto)", 0, 64,
+                                 read_only=True),
+    "image_max_pixels": ParamSpec("pixel count kept images are reduced to (auto)", 10_000,
+                                  100_000_000, read_only=True),
+    "evict_policy": ParamSpec("keyframe evicted over budget", choices=("redundant", "oldest"),
+                              read_only=True),
+    "qos_depth": ParamSpec("history depth of the keyframe subscriptions", 1, 1000,
+                           read_only=True),
     "frame_id": ParamSpec("world frame of outputs", read_only=True),
 }
 
@@ -79,6 +109,16 @@ def splats_to_pointcloud2(model, stamp, frame_id: str) -> PointCloud2:
     fields = {n: np.ascontiguousarray(arr[:, i]) for i, n in enumerate(PLY_FIELDS)
               if n not in SPLAT_SKIP_FIELDS}
     return msgconv.fields_to_pointcloud2(fields, stamp, frame_id)
+
+
+def _mask_at(bits: np.ndarray, shape: tuple, factor: int) -> np.ndarray:
+    """bool mask [H//f, W//f] of a packed full-size mask (a block is in when half of it is)."""
+    mask = np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape).astype(bool)
+    if factor <= 1:
+        return mask
+    h, w = shape[0] // factor, shape[1] // factor
+    blocks = mask[:h * factor, :w * factor].reshape(h, factor, w, factor)
+    return blocks.mean(axis=(1, 3)) >= 0.5
 
 
 class TrainingNode(Node):
@@ -93,9 +133,15 @@ class TrainingNode(Node):
         self.diag = Diagnostics(self)
         self.throttle = Throttle(self)
         self._lock = threading.Lock()
-        self.masks: dict[int, np.ndarray] = {}
-        self.assembler = KeyframeAssembler(self.diag, self.cfg.max_keyframes,
-                                           on_evict=lambda stamp: self.masks.pop(stamp, None))
+        self.masks: dict[int, tuple] = {}  # stamp -> (packed bits, (H, W)) of a full mask
+        budget = (int(self.cfg.image_budget_mb * 2 ** 20) if self.cfg.image_budget_mb > 0
+                  else auto_image_budget_bytes())
+        self.assembler = KeyframeAssembler(
+            self.diag, self.cfg.max_keyframes, max_bytes=budget,
+            downscale=self.cfg.image_downscale, max_pixels=self.cfg.image_max_pixels,
+            evict_policy=self.cfg.evict_policy, warn=self.throttle.warn,
+            on_evict=self._on_evict)
+        self.diag.set("image_budget_mb", f"{budget / 2 ** 20:.0f}")
         self.keyframes = self.assembler.keyframes  # {stamp_ns: View}, capture order
         self.ooi_xyz: Optional[np.ndarray] = None
         self.ooi_rgb: Optional[np.ndarray] = None
@@ -123,7 +169,7 @@ class TrainingNode(Node):
                 self.recorder.add_topic(self._abs(topic), type_name, qos)
             self.diag.set("record_path", path)
 
-        rq = reliable_qos(depth=50)
+        rq = reliable_qos(depth=self.cfg.qos_depth)
         self.create_subscription(Image, "keyframe/image", self.on_kf_image, rq)
         self.create_subscription(CameraInfo, "keyframe/camera_info", self.on_kf_info, rq)
         self.create_subscription(PoseStamped, "keyframe/pose", self.on_kf_pose, rq)
@@ -134,6 +180,10 @@ class TrainingNode(Node):
         self.pub_loss = self.create_publisher(Float32MultiArray, "splat/loss", reliable_qos())
         self.create_service(Trigger, "~/train", self.on_train_srv)
         self.diag.set_state("waiting for keyframes, masks and the OOI cloud")
+
+    def _on_evict(self, stamp_ns: int) -> None:
+        with self._lock:
+            self.masks.pop(stamp_ns, None)
 
     def _abs(self, topic: str) -> str:
         return self.resolve_topic_name(topic)
@@ -170,8 +220,15 @@ class TrainingNode(Node):
     def on_mask(self, msg: Image) -> None:
         stamp_ns = msgconv.stamp_to_ns(msg.header.stamp)
         self._record("ooi/mask", msg, stamp_ns)
-        with self._lock:
-            self.masks[stamp_ns] = msgconv.image_to_mask(msg)
+        mask = msgconv.image_to_mask(msg)
+        packed = (np.packbits(mask, axis=None), mask.shape)
+        with self.assembler.lock, self._lock:
+            self.masks[stamp_ns] = packed
+            # a mask waits for its keyframe, but masks of evicted/unknown stamps do not pile up
+            extra = len(self.masks) - len(self.assembler.keyframes) - self.assembler.max_pending
+            for k in [k for k in self.masks if k not in self.assembler.keyframes][:max(extra, 0)]:
+                del self.masks[k]
+                self.diag.count("dropped_mask_without_keyframe")
         self.diag.set("masks", len(self.masks))
         self._maybe_auto_start()
 
@@ -225,7 +282,9 @@ class TrainingNode(Node):
             t0 = time.monotonic()
             with self.assembler.lock, self._lock:
                 views = [v for k, v in self.keyframes.items() if k in self.masks]
-                masks = {str(k): self.masks[k] for k in self.keyframes if k in self.masks}
+                packed = {k: (self.masks[k], self.assembler.factors[k]) for k in self.keyframes
+                          if k in self.masks}
+            masks = {str(k): _mask_at(bits, shape, f) for k, ((bits, shape), f) in packed.items()}
             capture = Capture(views=views, source="ros")
             result = train(capture, masks, self.ooi_xyz, self.train_cfg,
                            init_colors=self.ooi_rgb, progress=self._progress)

@@ -1,0 +1,249 @@
+"""Nodes under load, in miniature: downscaled working copies that stay geometrically exact,
+keyframe memory bounded in bytes with counted evictions, an image callback that decodes only
+keyframe candidates, pose interpolation across lost pose messages, and SfM observations
+published in the source image's pixels although SfM ran on a downscaled copy.
+
+The node callbacks are called directly with real messages (no transport in between), so the
+counts are exact; the transport is exercised by the pipeline and play/record tests.
+"""
+
+import time
+import uuid
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from ooi_seg_ros import msgconv
+from ooi_seg_ros.core.geometry import look_at, project
+from ooi_seg_ros.core.types import CameraIntrinsics, Pose
+from ooi_seg_ros.nodes.common import (Diagnostics, KeyframeAssembler, downscale_camera,
+                                      downscale_factor, downscale_rgb, scale_pixels,
+                                      upscale_mask)
+from ooi_seg_ros.nodes.segmentation_node import SegmentationNode
+from ooi_seg_ros.nodes.sfm_node import SfmNode
+
+
+@pytest.fixture
+def ctx():
+    c = Context()
+    rclpy.init(context=c)
+    yield c
+    rclpy.shutdown(context=c)
+
+
+def _ns() -> str:
+    return "/l_" + uuid.uuid4().hex[:8]
+
+
+def test_downscale_factor_from_image_size():
+    assert downscale_factor(320, 240, 400_000) == 1
+    assert downscale_factor(1280, 720, 400_000) == 2  # 640x360
+    assert downscale_factor(1920, 1080, 400_000) == 3  # 640x360
+    assert downscale_factor(4000, 3000, 400_000) == 6
+    assert downscale_factor(1280, 720, 0) == 1  # 0: keep full resolution
+
+
+@pytest.mark.parametrize("f", [2, 3])
+def test_downscaled_camera_and_image_agree(f):
+    cam = CameraIntrinsics(97, 61, 80.0, 82.0, 47.3, 29.8)
+    small = downscale_camera(cam, f)
+    assert (small.width, small.height) == (97 // f, 61 // f)
+    # a bright f x f block of the source is one bright pixel of the copy, at its own centre
+    img = np.zeros((61, 97, 3), np.uint8)
+    i, j = 7, 11
+    img[f * i:f * i + f, f * j:f * j + f] = 255
+    out = downscale_rgb(img, f)
+    assert out.shape == (61 // f, 97 // f, 3)
+    assert tuple(np.argwhere(out[..., 0] == 255)[0]) == (i, j)
+    centre_src = np.array([[f * j + (f - 1) / 2, f * i + (f - 1) / 2]])
+    assert np.allclose((centre_src + 0.5) / f - 0.5, [[j, i]])
+    # a 3D point projects to the same place in both cameras, up to the pixel scale
+    pose = look_at(np.array([0.0, -4.0, 1.0]), np.zeros(3))
+    pts = np.array([[0.3, 0.2, 0.1], [-0.5, 0.1, 0.4]])
+    uv_full, _ = project(pts, cam, pose)
+    uv_small, _ = project(pts, small, pose)
+    assert np.allclose(scale_pixels(uv_small, f), uv_full, atol=1e-4)
+
+
+def test_upscale_mask_is_nearest_and_sized():
+    m = np.zeros((10, 16), bool)
+    m[2:5, 3:9] = True
+    up = upscale_mask(m, 3, 50, 31)  # source 50x31 kept at 16x10 (remainder cropped)
+    assert up.shape == (31, 50)
+    assert up[6:15, 9:27].all() and up.sum() == 9 * 18
+    assert upscale_mask(m, 1, 16, 10) is m
+
+
+def _kf(assembler, stamp, pose, size=(48, 64)):
+    cam = CameraIntrinsics(size[1], size[0], 50.0, 50.0, size[1] / 2 - 0.5, size[0] / 2 - 0.5)
+    rgb = np.full(size + (3,), stamp % 251, np.uint8)
+    assembler.add(stamp, "info", cam)
+    assembler.add(stamp, "pose", pose)
+    return assembler.add(stamp, "image", rgb)
+
+
+def test_keyframe_memory_is_bounded_in_bytes(ctx):
+    node = Node("asm", context=ctx, namespace=_ns())
+    try:
+        diag = Diagnostics(node)
+        evicted = []
+        one = 24 * 32 * 3  # a 64x48 image kept at half size
+        asm = KeyframeAssembler(diag, max_keyframes=1000, max_bytes=5 * one, downscale=2,
+                                evict_policy="oldest", on_evict=evicted.append)
+        for k in range(12):
+            assert _kf(asm, 100 + k, look_at(np.array([4.0, 0.1 * k, 1.0]), np.zeros(3)))
+        assert len(asm) == 5 and asm.nbytes == 5 * one
+        assert list(asm.keyframes) == list(range(107, 112))  # oldest went first
+        assert evicted == list(range(100, 107))
+        assert diag.counters["dropped_keyframe_budget"] == 7
+        v = asm.keyframes[111]
+        assert v.image.shape == (24, 32, 3) and v.camera.width == 32
+        assert asm.full_cameras[111].width == 64 and asm.factors[111] == 2
+    finally:
+        node.destroy_node()
+
+
+def test_redundant_keyframe_is_evicted_first(ctx):
+    node = Node("asm2", context=ctx, namespace=_ns())
+    try:
+        diag = Diagnostics(node)
+        one = 48 * 64 * 3
+        asm = KeyframeAssembler(diag, max_keyframes=1000, max_bytes=4 * one, downscale=1)
+        # an orbit of four views, then one almost where the second was
+        angles = [0, 90, 180, 270]
+        for k, a in enumerate(angles):
+            c = 4 * np.array([np.cos(np.radians(a)), np.sin(np.radians(a)), 0.3])
+            _kf(asm, 10 + k, look_at(c, np.zeros(3)))
+        c = 4 * np.array([np.cos(np.radians(92)), np.sin(np.radians(92)), 0.3])
+        _kf(asm, 20, look_at(c, np.zeros(3)))
+        assert list(asm.keyframes) == [10, 12, 13, 20]  # the older of the near pair went
+        assert diag.counters["dropped_keyframe_budget"] == 1
+    finally:
+        node.destroy_node()
+
+
+def test_mismatched_keyframe_is_dropped_and_counted(ctx):
+    node = Node("asm3", context=ctx, namespace=_ns())
+    try:
+        diag = Diagnostics(node)
+        asm = KeyframeAssembler(diag, max_keyframes=10)
+        cam = CameraIntrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+        asm.add(5, "info", cam)
+        asm.add(5, "pose", Pose.identity())
+        assert not asm.add(5, "image", np.zeros((40, 64, 3), np.uint8))
+        assert len(asm) == 0 and diag.counters["dropped_keyframe_size_mismatch"] == 1
+    finally:
+        node.destroy_node()
+
+
+def _orbit_pose(k: int, n: int) -> Pose:
+    a = 2 * np.pi * k / n
+    return look_at(np.array([4 * np.cos(a), 4 * np.sin(a), 1.5]), np.zeros(3))
+
+
+def test_sfm_node_decodes_candidates_only_and_bridges_lost_poses(ctx):
+    node = SfmNode(context=ctx, namespace=_ns(), parameter_overrides=[
+        Parameter("keyframes.rotation_deg", value=20.0)])
+    try:
+        cam = CameraIntrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+        node.on_camera_info(msgconv.intrinsics_to_camera_info(cam, msgconv.ns_to_stamp(0)))
+        rng = np.random.default_rng(0)
+        period = 33_333_333  # 30 Hz
+        n = 90
+        lost = set(range(20, 24)) | {50, 51}  # bursts of 4 and 2 lost pose messages
+        for k in range(n):
+            stamp = 10 ** 9 + k * period
+            pose = _orbit_pose(k // 3, 60)  # moves 6 degrees every 3 frames
+            if k not in lost:
+                node.on_pose(msgconv.pose_to_pose_stamped(pose, stamp, "map"))
+            rgb = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+            node.on_image(msgconv.rgb_to_image(rgb, stamp, "cam"))
+        node.on_pose(msgconv.pose_to_pose_stamped(_orbit_pose(n // 3, 60), 10 ** 9 + n * period,
+                                                  "map"))
+        c = node.diag.counters
+        assert c["images"] == n
+        assert c.get("dropped_no_pose", 0) == 0, c  # lost poses were bridged
+        assert node.pose_tolerance_ns() == 5 * period  # (pose_max_lost + 1) periods
+        seen = node.selector.seen
+        assert seen == n
+        # only frames that passed the motion test were decoded (for the blur test)
+        decoded = c["images_decoded"]
+        assert decoded == node.selector.accepted + node.selector.dropped.get("blurry", 0)
+        assert decoded < n / 2, (decoded, node.selector.report())
+        # a gap longer than the tolerance is not bridged: counted, not guessed
+        s0 = 10 ** 9 + (n + 20) * period
+        node.on_image(msgconv.rgb_to_image(np.zeros((48, 64, 3), np.uint8), s0, "cam"))
+        node.on_pose(msgconv.pose_to_pose_stamped(_orbit_pose(40, 60), s0 + 10 * period,
+                                                  "map"))
+        assert c["dropped_no_pose"] == 1
+    finally:
+        node.close()
+        node.destroy_node()
+
+
+@pytest.mark.slow
+def test_sfm_on_downscaled_copies_publishes_source_pixels(ctx):
+    from ooi_seg_ros.sim import simulate_capture
+
+    cap = simulate_capture("aircraft", n_views=8, width=320, height=240, seed=0,
+                           supersample=1).capture
+    node = SfmNode(context=ctx, namespace=_ns(), parameter_overrides=[
+        Parameter("sfm_max_pixels", value=20_000),  # 320x240 -> factor 2 (160x120)
+        Parameter("keyframes.translation_frac", value=0.0),
+        Parameter("queue_size", value=100)])
+    try:
+        for k, v in enumerate(cap.views):
+            stamp = 10 ** 9 + k * 10 ** 8
+            node.on_camera_info(msgconv.intrinsics_to_camera_info(v.camera, stamp))
+            node.on_pose(msgconv.pose_to_pose_stamped(v.pose, stamp, "map"))
+            node.on_image(msgconv.rgb_to_image(v.get_image(), stamp, "cam"))
+        deadline = time.monotonic() + 120
+        while node.keyframes_processed < node.selector.accepted and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert node.sfm_factor == 2
+        assert node.keyframes_processed == node.selector.accepted >= 6
+        assert all(kf.view.image is None for kf in node.sfm.keyframes)  # no pixels kept
+        assert all(kf.view.camera.width == 160 for kf in node.sfm.keyframes)
+        got = []
+        node.pub_obs.publish = got.append  # capture what would go on the wire
+        node.pub_points.publish = got.append
+        node.publish_cloud()
+        pts_msg, obs_msg = got
+        views = list(cap.views)
+        for k, v in enumerate(views):
+            v.stamp_ns = 10 ** 9 + k * 10 ** 8
+        cloud = msgconv.pointcloud2_to_sfm_cloud(pts_msg, obs_msg, views)
+        assert len(cloud) > 50
+        err = []
+        for i in range(len(cloud)):
+            for vi, xy in zip(*cloud.observations(i)):
+                p, _ = project(cloud.xyz[i:i + 1], views[vi].camera, views[vi].pose)
+                err.append(np.linalg.norm(p[0] - xy))
+        # observations are in the 320x240 source pixels: reprojection agrees there
+        assert np.median(err) < 1.5, np.median(err)
+    finally:
+        node.close()
+        node.destroy_node()
+
+
+def test_segmentation_node_keeps_downscaled_keyframes_within_budget(ctx):
+    node = SegmentationNode(context=ctx, namespace=_ns(), parameter_overrides=[
+        Parameter("every_n_keyframes", value=0), Parameter("image_max_pixels", value=10_000),
+        Parameter("image_budget_mb", value=3 * 80 * 60 * 3 / 2 ** 20)])
+    try:
+        cam = CameraIntrinsics(160, 120, 120.0, 120.0, 79.5, 59.5)  # kept at 80x60
+        for k in range(6):
+            stamp = 10 ** 9 + k * 10 ** 8
+            pose = _orbit_pose(k, 6)
+            node.on_kf_info(msgconv.intrinsics_to_camera_info(cam, stamp))
+            node.on_kf_pose(msgconv.pose_to_pose_stamped(pose, stamp, "map"))
+            node.on_kf_image(msgconv.rgb_to_image(np.zeros((120, 160, 3), np.uint8), stamp))
+        assert len(node.keyframes) == 3
+        assert node.diag.counters["dropped_keyframe_budget"] == 3
+        assert all(v.image.shape == (60, 80, 3) for v in node.keyframes.values())
+    finally:
+        node.destroy_node()
