@@ -13,7 +13,10 @@ spacings; the support plane is the one whose normal, oriented towards the camera
 the cameras' mean "up" direction, that has the cameras' convergence point (the object) on the
 cameras' side, and holds the most points (after a least-squares refit of its inliers). Its
 inliers within a band derived from the inlier residuals, and everything on the far side, are
-removed.
+removed. The band is at least the floor's measured thickness: the ``band_mirror_quantile``
+of the depths of points just *below* the plane, where only floor lies -- a lawn or a rough
+floor scatters its SfM points upwards as far as downwards, and a band from the inliers'
+residuals alone left a ring of lawn points around a bicycle (IoU 0.18).
 """
 
 from __future__ import annotations
@@ -41,7 +44,11 @@ class FloorConfig:
     support_max_planes: int = 6  # support mode: planes extracted one after another
     support_min_inliers: float = 0.1  # support mode: smallest plane, fraction of the cloud
     support_min_up: float = 0.7  # support mode: min cos(normal, mean camera up)
-    band_sigmas: float = 2.5  # support mode: removal band = this x inlier residual std
+    band_sigmas: float = 2.5  # support mode: removal band >= this x inlier residual std
+    band_mirror_quantile: float = 0.99  # support mode: band >= this quantile of the depths of
+    # the points just below the plane (only floor lies below it, so its underside measures how
+    # thick the floor's skin of SfM points is; 0 disables)
+    band_mirror_window: float = 10.0  # support mode: "just below" = within this x threshold
     seed: int = 0  # RANSAC seed
 
 
@@ -127,9 +134,16 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
     _, plane, res_std = best
     band = max(cfg.band_sigmas * res_std, 0.5 * thr)
     sd = xyz @ plane[:3] + plane[3]
+    mirror = 0.0
+    if cfg.band_mirror_quantile > 0:
+        below = -sd[(sd < 0) & (sd > -cfg.band_mirror_window * thr)]
+        if len(below) >= 20:
+            mirror = float(np.quantile(below, cfg.band_mirror_quantile))
+            band = max(band, mirror)
     keep = sd > band
     return np.nonzero(keep)[0], {"support_plane": plane.tolist(), "band": band,
-                                 "threshold": thr, "planes_tried": tried}
+                                 "band_mirror": mirror, "threshold": thr,
+                                 "planes_tried": tried}
 
 
 def floor_filter(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,

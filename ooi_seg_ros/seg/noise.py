@@ -3,9 +3,10 @@
 ``eps`` is derived from the cloud: ``eps_scale`` times the median distance to the
 ``min_samples``-th neighbour. ``select="largest"`` is the paper's rule; ``select="central"``
 (improved) keeps the cluster with most points near the cameras' convergence point, i.e. the
-cluster the orbit is looking at, and also merges clusters whose points lie within the object's
-radius of it (parts of one object split by a sparse gap). ``iterations`` > 1 repeats the
-removal until fewer than ``stop_fraction`` of the points are removed in a round.
+cluster the orbit is looking at, and also merges clusters that lie (mostly) within that
+cluster's own reach from the convergence point (parts of one object split by a sparse gap).
+``iterations`` > 1 repeats the removal until fewer than ``stop_fraction`` of the points are
+removed in a round.
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ class NoiseConfig:
     select: str = "largest"  # "largest" (paper) | "central" (nearest the convergence point)
     sor_neighbours: int = 16  # SOR: neighbours per point
     sor_std_ratio: float = 2.0  # SOR: mean-distance threshold in standard deviations
+    merge_reach_quantile: float = 0.98  # central: the main cluster's reach = this quantile
+    # of its points' distances to the convergence point; other clusters within it are merged
+    # (0: within the frame radius instead)
     iterations: int = 1  # repeat the removal (stops early, see stop_fraction)
     stop_fraction: float = 0.01  # stop iterating when a round removes fewer than this fraction
 
@@ -47,11 +51,14 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
         if near.max() == 0:
             chosen = [ids[np.argmin([d[labels == i].min() for i in ids])]]
         else:
-            # every cluster with a real share of its points inside the object's radius
-            frac = near / counts
-            chosen = list(ids[(near >= 0.2 * near.max()) & (frac >= 0.5)])
-            if not chosen:
-                chosen = [ids[np.argmax(near)]]
+            # the cluster the orbit looks at, plus clusters lying within its own reach of the
+            # convergence point (a part split off by a sparse gap; not the neighbour on the
+            # table, which lies farther out than the object itself reaches)
+            main = ids[np.argmax(near)]
+            reach = (float(np.quantile(d[labels == main], cfg.merge_reach_quantile))
+                     if cfg.merge_reach_quantile > 0 else radius)
+            within = np.array([(d[labels == i] <= reach).mean() for i in ids])
+            chosen = list(ids[(within >= 0.5) | (ids == main)])
         keep = np.isin(labels, chosen)
     else:
         keep = labels == ids[np.argmax(counts)]

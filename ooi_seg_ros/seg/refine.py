@@ -31,20 +31,29 @@ class RefineConfig:
     max_side: int = 256  # crops larger than this are refined at reduced resolution
     max_area_change: float = 0.5  # reject results that grow/shrink the mask by more than this
     hole_max_fraction: float = 0.02  # fill holes smaller than this x the mask area
+    opening: int = 1  # iterations of the binary opening that removes specks from the result
     seed: int = 0  # seed of OpenCV's RNG (GrabCut's colour-model initialisation)
 
 
-def _obs_by_view(cloud: SfmCloud, n_views: int) -> list[np.ndarray]:
-    """Observation pixel coordinates [k,2] of ``cloud``'s points, per view index."""
-    out = [np.zeros((0, 2), np.float32) for _ in range(n_views)]
+def _obs_by_view(cloud: SfmCloud, views: list[View]) -> list[np.ndarray]:
+    """Observation pixel coordinates [k,2] of ``cloud``'s points in each of ``views``.
+
+    ``obs_view`` indexes ``cloud.views`` (the SfM keyframes), which may be a subset or a
+    reordering of the views being masked, so observations are matched by view key.
+    """
+    out = [np.zeros((0, 2), np.float32) for _ in range(len(views))]
     if len(cloud.obs_view) == 0:
         return out
+    src = cloud.views if cloud.views else views
+    where = {v.key: j for j, v in enumerate(views)}
     order = np.argsort(cloud.obs_view, kind="stable")
     ov = cloud.obs_view[order]
     xy = cloud.obs_xy[order]
-    bounds = np.searchsorted(ov, np.arange(n_views + 1))
-    for j in range(n_views):
-        out[j] = xy[bounds[j]:bounds[j + 1]]
+    bounds = np.searchsorted(ov, np.arange(len(src) + 1))
+    for i, v in enumerate(src):
+        j = where.get(v.key)
+        if j is not None:
+            out[j] = xy[bounds[i]:bounds[i + 1]]
     return out
 
 
@@ -64,8 +73,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                  background: SfmCloud, cfg: RefineConfig) -> tuple[dict, dict]:
     """GrabCut-refined masks {key: bool [H,W]} and counts of refined/rejected views."""
     import cv2
-    fg_obs = _obs_by_view(ooi, len(views))
-    bg_obs = _obs_by_view(background, len(views))
+    fg_obs = _obs_by_view(ooi, views)
+    bg_obs = _obs_by_view(background, views)
     out, refined, rejected = {}, 0, 0
     for j, v in enumerate(views):
         m = masks[v.key]
@@ -115,7 +124,9 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         if scale < 1.0:
             res = cv2.resize(res.astype(np.uint8), (crop.shape[1], crop.shape[0]),
                              interpolation=cv2.INTER_NEAREST).astype(bool)
-        res = fill_small_holes(ndimage.binary_opening(res, iterations=1), cfg.hole_max_fraction)
+        if cfg.opening > 0:
+            res = ndimage.binary_opening(res, iterations=int(cfg.opening))
+        res = fill_small_holes(res, cfg.hole_max_fraction)
         a0, a1 = crop.sum(), res.sum()
         if abs(a1 - a0) > cfg.max_area_change * a0:
             rejected += 1
