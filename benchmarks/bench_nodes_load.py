@@ -36,7 +36,8 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from ooi_seg_ros import msgconv
-from ooi_seg_ros.nodes.common import latched_qos, reliable_qos, sensor_qos
+from ooi_seg_ros.nodes.common import (latched_qos, limit_heap_growth, reliable_qos,
+                                      sensor_qos)
 from ooi_seg_ros.nodes.segmentation_node import SegmentationNode
 from ooi_seg_ros.nodes.sfm_node import SfmNode
 from ooi_seg_ros.sim import simulate_capture
@@ -118,7 +119,9 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -
     out = {"published": stats.get("published", 0), "late_publishes": stats.get("late", 0),
            "rss_mb_first": rss[1] if len(rss) > 1 else None,
            "rss_mb_mid": rss[len(rss) // 2] if rss else None,
-           "rss_mb_last": rss[-1] if rss else None}
+           "rss_mb_last": rss[-1] if rss else None,
+           "rss_mb_quartiles": [round(rss[min(len(rss) - 1, len(rss) * q // 4)])
+                                for q in (1, 2, 3, 4)] if rss else None}
     if with_nodes:
         # let SfM and the last segmentation finish, then measure latency
         deadline = time.monotonic() + 300
@@ -183,11 +186,15 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=120.0)
     ap.add_argument("--unique", type=int, default=60, help="views rendered along the orbit")
     ap.add_argument("--baseline-duration", type=float, default=20.0)
+    ap.add_argument("--default-malloc", action="store_true",
+                    help="leave glibc's heap settings alone (the nodes' main() limits them)")
     ap.add_argument("--cache", default="",
                     help="pickle file for the rendered views (rendered and written if missing)")
     ap.add_argument("--budget-mb", type=float, default=0.0,
                     help="segmentation node image_budget_mb (0 = its default)")
     args = ap.parse_args()
+    if not args.default_malloc:
+        limit_heap_growth()  # as the nodes' main() does (run_node)
     w, h = (int(x) for x in args.size.split("x"))
     t = time.monotonic()
     key = (args.scene, args.unique, w, h)

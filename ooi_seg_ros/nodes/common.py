@@ -241,9 +241,34 @@ def guarded(counter: str) -> Callable:
     return deco
 
 
+def limit_heap_growth(mmap_threshold: int = 2 ** 20, arenas: int = 2) -> bool:
+    """Makes glibc return freed image-sized buffers to the OS (no-op elsewhere).
+
+    A node handles many short-lived multi-megabyte arrays (decoded frames, masks) in several
+    threads. glibc's default raises its mmap threshold after the first such buffer is freed,
+    after which they come from per-thread heaps that fragment and rarely shrink: resident
+    memory then keeps the high-water mark of every thread. A fixed threshold (and few arenas)
+    keeps big buffers in mmap, released on free. Returns True when applied.
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if not name:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        m_mmap_threshold, m_arena_max = -3, -8  # <malloc.h>
+        return bool(libc.mallopt(m_mmap_threshold, int(mmap_threshold))
+                    and libc.mallopt(m_arena_max, int(arenas)))
+    except (OSError, AttributeError):
+        return False
+
+
 def run_node(node_factory: Callable[[], Node], args: Optional[list[str]] = None,
              multithreaded: bool = True) -> None:
     """Jazzy-style main(): init, spin, clean shutdown on Ctrl-C or external shutdown."""
+    limit_heap_growth()
     rclpy.init(args=args)
     node = None
     try:

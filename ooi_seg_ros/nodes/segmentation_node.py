@@ -25,6 +25,7 @@ from typing import Optional
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
@@ -67,6 +68,9 @@ class SegNodeConfig:
                                               "(camera nearest another kept one) or oldest"})
     qos_depth: int = dataclasses.field(
         default=10, metadata={"doc": "history depth of the keyframe subscriptions"})
+    mask_qos_depth: int = dataclasses.field(
+        default=20, metadata={"doc": "masks the middleware keeps; a burst of more waits for "
+                                     "the subscribers' acknowledgements"})
     mask_stride: int = dataclasses.field(
         default=1, metadata={"doc": "publish masks for every k-th keyframe (1 = all)"})
 
@@ -87,6 +91,8 @@ SPECS = {
                               read_only=True),
     "qos_depth": ParamSpec("history depth of the keyframe subscriptions", 1, 1000,
                            read_only=True),
+    "mask_qos_depth": ParamSpec("history depth of the mask publisher", 1, 10000,
+                                read_only=True),
     "frame_id": ParamSpec("world frame of outputs", read_only=True),
     "method": ParamSpec("segmentation preset", choices=("ours", "paper"), read_only=True),
 }
@@ -128,7 +134,8 @@ class SegmentationNode(Node):
         self.create_subscription(PointCloud2, "sfm/observations", self.on_obs, latched_qos())
         self.pub_points = self.create_publisher(PointCloud2, "ooi/points", latched_qos())
         self.pub_mesh = self.create_publisher(Marker, "ooi/mesh", latched_qos())
-        self.pub_mask = self.create_publisher(Image, "ooi/mask", reliable_qos(depth=100))
+        self.pub_mask = self.create_publisher(Image, "ooi/mask",
+                                              reliable_qos(depth=self.cfg.mask_qos_depth))
         self.create_service(Trigger, "~/segment", self.on_segment_srv)
         self.diag.set_state("waiting for keyframes and the SfM cloud")
 
@@ -219,16 +226,27 @@ class SegmentationNode(Node):
                                                               self.cfg.frame_id))
         if result.mesh is not None and not result.mesh.is_empty:
             self.pub_mesh.publish(msgconv.mesh_to_marker(result.mesh, stamp, self.cfg.frame_id))
+        batch = 0
         for i, v in enumerate(views):
             if i % self.cfg.mask_stride:
                 continue
             mask = result.masks.get(v.key)
             if mask is None:
+                self.diag.count("masks_missing")
                 continue
+            if batch == self.cfg.mask_qos_depth:
+                # the middleware keeps only mask_qos_depth masks: let the subscribers catch up
+                # rather than overwrite masks they have not acknowledged yet
+                if not self.pub_mask.wait_for_all_acked(Duration(seconds=10.0)):
+                    self.diag.count("mask_ack_timeouts")
+                    self.throttle.warn("maskack", "a mask subscriber did not acknowledge "
+                                                  "within 10 s; it may miss masks")
+                batch = 0
             cam, f = full[v.stamp_ns]
             mask = upscale_mask(np.asarray(mask, bool), f, cam.width, cam.height)
             self.pub_mask.publish(msgconv.mask_to_image(mask, msgconv.ns_to_stamp(v.stamp_ns),
                                                         "camera_optical"))
+            batch += 1
             self.diag.count("masks_published")
 
     def on_segment_srv(self, request, response):

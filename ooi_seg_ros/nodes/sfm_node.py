@@ -44,6 +44,7 @@ from ..sfm.keyframes import KeyframeConfig, KeyframeSelector
 from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, check_image_msg,
                      downscale_camera, downscale_factor, downscale_rgb, guarded, latched_qos,
                      reliable_qos, run_node, scale_pixels, sensor_qos)
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
 
@@ -79,6 +80,12 @@ class SfmNodeConfig:
     sfm_max_pixels: int = dataclasses.field(
         default=400_000, metadata={"doc": "with sfm_downscale 0: pixel count SfM images are "
                                           "reduced to (feature extraction cost grows with it)"})
+    image_qos_depth: int = dataclasses.field(
+        default=5, metadata={"doc": "depth of the image subscriptions (sensor-data QoS; "
+                                    "frames beyond it are the transport's drops)"})
+    pose_qos_depth: int = dataclasses.field(
+        default=100, metadata={"doc": "depth of the pose and camera_info subscriptions (small "
+                                      "messages: a deep queue rides out a busy moment)"})
     keyframe_qos_depth: int = dataclasses.field(
         default=10, metadata={"doc": "history depth of the keyframe publishers (full-size "
                                      "images held by the middleware)"})
@@ -94,6 +101,9 @@ SPECS = {
                                read_only=True),
     "sfm_max_pixels": ParamSpec("pixel count SfM images are reduced to (auto)", 10_000,
                                 100_000_000, read_only=True),
+    "image_qos_depth": ParamSpec("depth of the image subscriptions", 1, 1000, read_only=True),
+    "pose_qos_depth": ParamSpec("depth of the pose/camera_info subscriptions", 1, 100000,
+                                read_only=True),
     "keyframe_qos_depth": ParamSpec("history depth of the keyframe publishers", 1, 1000,
                                     read_only=True),
     "pose_buffer_s": ParamSpec("seconds of pose history kept", 0.1, 600.0),
@@ -145,14 +155,22 @@ class SfmNode(Node):
         self.keyframe_times: collections.deque = collections.deque(maxlen=200)  # s per kf
         self.sfm_factor: Optional[int] = None  # downscale of SfM's images (first keyframe)
 
-        sq = sensor_qos()
-        self.create_subscription(Image, "image", self.on_image, sq)
-        self.create_subscription(CompressedImage, "image/compressed", self.on_compressed, sq)
-        self.create_subscription(CameraInfo, "camera_info", self.on_camera_info, sq)
+        # images and poses in separate callback groups: a multi-threaded executor then never
+        # holds a pose back behind an image callback (lost poses cost images)
+        images, poses = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
+        sq = sensor_qos(self.cfg.image_qos_depth)
+        pq = sensor_qos(self.cfg.pose_qos_depth)
+        self.create_subscription(Image, "image", self.on_image, sq, callback_group=images)
+        self.create_subscription(CompressedImage, "image/compressed", self.on_compressed, sq,
+                                 callback_group=images)
+        self.create_subscription(CameraInfo, "camera_info", self.on_camera_info, pq,
+                                 callback_group=poses)
         if self.cfg.pose_type == "odometry":
-            self.create_subscription(Odometry, "pose", self.on_odometry, sq)
+            self.create_subscription(Odometry, "pose", self.on_odometry, pq,
+                                     callback_group=poses)
         else:
-            self.create_subscription(PoseStamped, "pose", self.on_pose, sq)
+            self.create_subscription(PoseStamped, "pose", self.on_pose, pq,
+                                     callback_group=poses)
         rq = reliable_qos(depth=self.cfg.keyframe_qos_depth)
         self.pub_kf_image = self.create_publisher(Image, "keyframe/image", rq)
         self.pub_kf_info = self.create_publisher(CameraInfo, "keyframe/camera_info", rq)
@@ -182,8 +200,10 @@ class SfmNode(Node):
         self._add_pose(msgconv.stamp_to_ns(msg.header.stamp), cam)
 
     def _add_pose(self, stamp_ns: int, pose: Pose) -> None:
-        last = self.poses.latest_ns
-        if not self.poses.add(stamp_ns, pose):
+        with self._lock:  # lookups run in the image callback's thread
+            last = self.poses.latest_ns
+            added = self.poses.add(stamp_ns, pose)
+        if not added:
             self.diag.count("dropped_pose")
             self.throttle.warn("pose", f"pose at {stamp_ns} ns rejected (stamps going "
                                        "backwards or invalid); check the pose source")
