@@ -132,7 +132,7 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
                               "warning": "no support plane below the object with the cameras "
                                          "above it; floor stage kept every point"}
     _, plane, res_std = best
-    band = max(cfg.band_sigmas * res_std, 0.5 * thr)
+    band = band_inliers = max(cfg.band_sigmas * res_std, 0.5 * thr)
     sd = xyz @ plane[:3] + plane[3]
     mirror = 0.0
     if cfg.band_mirror_quantile > 0:
@@ -142,7 +142,8 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
             band = max(band, mirror)
     keep = sd > band
     return np.nonzero(keep)[0], {"support_plane": plane.tolist(), "band": band,
-                                 "band_mirror": mirror, "threshold": thr,
+                                 "band_inliers": band_inliers, "band_mirror": mirror,
+                                 "threshold": thr,
                                  "planes_tried": tried}
 
 

@@ -60,7 +60,8 @@ def preset(method: str) -> dict:
     if method == "ours":
         return {"method": "ours", "roi": {"enabled": True},
                 "density": {"drop_fraction": 0.05, "first_peak": False},
-                "floor": {"mode": "support"}, "noise": {"method": "dbscan", "select": "central"},
+                "floor": {"mode": "support"},
+                "noise": {"method": "dbscan", "select": "central", "eps_scale": 1.5},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
                           "splat_scale": 0.6, "hull_consistency": False},
@@ -185,6 +186,13 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         t0 = time.perf_counter()
         removed = np.ones(len(full), bool)
         removed[sel] = False
+        fp = params.get("floor", {})
+        if fp.get("support_plane") is not None and "band_inliers" in fp:
+            # points in the layer between the inliers' band and the floor's measured thickness
+            # may be the object's foot (a pot's base, a tyre): not background seeds
+            pl = np.asarray(fp["support_plane"])
+            h = full.xyz @ pl[:3] + pl[3]
+            removed &= ~((h > fp["band_inliers"]) & (h <= fp["band"]))
         try:
             masks, params["refine"] = refine_masks(masks, views, cloud, full.subset(removed),
                                                    cfg.refine)

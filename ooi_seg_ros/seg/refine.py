@@ -31,6 +31,8 @@ class RefineConfig:
     max_side: int = 256  # crops larger than this are refined at reduced resolution
     max_area_change: float = 0.5  # reject results that grow/shrink the mask by more than this
     hole_max_fraction: float = 0.02  # fill holes smaller than this x the mask area
+    voronoi: bool = False  # silhouette pixels nearer a background than an object observation
+    # start as probably-background instead of probably-object
     opening: int = 1  # iterations of the binary opening that removes specks from the result
     seed: int = 0  # seed of OpenCV's RNG (GrabCut's colour-model initialisation)
 
@@ -106,6 +108,13 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         fg_seed = np.zeros(crop_s.shape, bool)
         _draw(bg_seed, bg_obs[j], cfg.seed_radius, box, scale)
         _draw(fg_seed, fg_obs[j], cfg.seed_radius, box, scale)
+        if cfg.voronoi and fg_seed.any() and bg_seed.any():
+            # silhouette pixels nearer a background observation than any object observation
+            # start as "probably background": the discs' halo over the floor does not train
+            # the object's colour model
+            d_fg = ndimage.distance_transform_edt(~fg_seed)
+            d_bg = ndimage.distance_transform_edt(~bg_seed)
+            gc[crop_s & (d_bg < d_fg)] = cv2.GC_PR_BGD
         gc[bg_seed & ~fg_seed] = cv2.GC_BGD
         gc[fg_seed & ~bg_seed] = cv2.GC_FGD
         if not (gc == cv2.GC_FGD).any() and not (gc == cv2.GC_PR_FGD).any():
