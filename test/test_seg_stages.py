@@ -160,3 +160,51 @@ def test_splat_discs_with_centres_outside_the_image():
     assert m.shape == (30, 40)
     assert m[10, 0] and m[0, 25] and m[29, 39] and m[15, 20]
     assert not m[15, 10]
+
+
+def test_support_band_covers_a_rough_floor_skin():
+    """A lawn-like floor scatters points up to 4 cm above and below the plane; an object
+    stands on it. The band measured below the plane removes the skin, not the object."""
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(-2, 2, (6000, 2))
+    z = np.clip(rng.laplace(0, 0.008, 6000), -0.04, 0.04)  # heavy-tailed skin
+    floor = np.column_stack([xy, z])
+    obj = _sphere(800, r=0.3, c=(0, 0, 0.4))  # bottom at 0.1 m
+    xyz = np.vstack([floor, obj])
+    views = _ring_views()
+    centers = np.array([v.pose.t for v in views])
+    up = -np.mean([v.pose.R[:, 1] for v in views], axis=0)
+    keep, p = floor_filter(xyz, FloorConfig(mode="support"), centers, up,
+                           np.array([0, 0, 0.4]))
+    assert p["band_mirror"] > p["band_inliers"]  # the skin is thicker than the inliers' band
+    skin_left = (keep < 6000).sum()
+    off = FloorConfig(mode="support", band_mirror_quantile=0.0)
+    keep0, _ = floor_filter(xyz, off, centers, up, np.array([0, 0, 0.4]))
+    assert skin_left < 0.5 * (keep0 < 6000).sum()
+    assert (keep >= 6000).sum() == 800  # every object point kept
+
+
+def test_central_cluster_does_not_merge_a_neighbour_beyond_its_reach():
+    rng = np.random.default_rng(5)
+    obj = _sphere(1500, r=0.3, c=(0, 0, 0), seed=1)
+    part = _sphere(150, r=0.05, c=(0, 0, 0.2), seed=2)  # a split-off part inside its reach
+    neighbour = _sphere(800, r=0.15, c=(0.75, 0, 0), seed=3)  # the thing beside it
+    xyz = np.vstack([obj, part, neighbour, rng.uniform(-3, 3, (20, 3))])
+    cfg = NoiseConfig(select="central", eps_scale=1.5)
+    keep, p = noise_filter(xyz, cfg, np.zeros(3), 2.0)
+    assert (keep < 1500).sum() > 1400
+    assert ((keep >= 1650) & (keep < 2450)).sum() == 0
+    old, _ = noise_filter(xyz, NoiseConfig(select="central", eps_scale=1.5,
+                                           merge_reach_quantile=0.0), np.zeros(3), 2.0)
+    assert ((old >= 1650) & (old < 2450)).sum() > 700  # the frame-radius rule merged it
+
+
+def test_refine_observations_follow_view_keys():
+    """Observations index the cloud's own views: a reordered subset of views gets its own."""
+    from ooi_seg_ros.seg.refine import _obs_by_view
+    views = _ring_views(4)
+    cloud = SfmCloud(np.zeros((2, 3)), np.zeros((2, 3), np.uint8), np.zeros(2),
+                     np.array([0, 2, 3]), np.array([0, 3, 1], np.int32),
+                     np.array([[1, 1], [3, 3], [2, 2]], np.float32), views)
+    obs = _obs_by_view(cloud, [views[3], views[1]])
+    assert obs[0].tolist() == [[3, 3]] and obs[1].tolist() == [[2, 2]]
