@@ -130,21 +130,22 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -
                 + sfm.diag.counters.get("error_sfm", 0) < sfm.selector.accepted):
             time.sleep(0.5)
         t_done_sfm = time.monotonic()
-        seg.trigger()
-        while time.monotonic() < deadline and seg.runs == 0:
-            time.sleep(0.5)
-        time.sleep(1.0)
-        while time.monotonic() < deadline and not seg._busy.acquire(blocking=False):
-            time.sleep(0.5)
+        # the node re-segments by itself (every 10 keyframes, or idle_run_s after the last
+        # input): wait for the run that includes the newest keyframe
+        last_kf = max(int(k) for k in seg.keyframes) if seg.keyframes else None
+        while time.monotonic() < deadline and (seg.last_run_newest_ns != last_kf
+                                               or seg._busy.locked()):
+            time.sleep(0.2)
         time.sleep(2.0)  # the masks of the last run
         t_ooi = got["ooi"][-1][0] if got["ooi"] else None
-        last_kf = max(int(k) for k in seg.keyframes) if seg.keyframes else None
         t_mask = got["mask"].get(last_kf)
         c = sfm.diag.counters
         sc = seg.diag.counters
         out.update({
             "received_by_sfm_node": c.get("images", 0),
             "dropped": {k: v for k, v in c.items() if k.startswith("dropped") and v},
+            "pose_gaps": c.get("pose_gaps", 0), "pose_gap_last_s": sfm.diag.values.get(
+                "pose_gap_last_s"),
             "skipped": {k: v for k, v in c.items() if k.startswith("skipped") and v},
             "keyframes": sfm.selector.accepted, "keyframes_processed": sfm.keyframes_processed,
             "sfm_points": int(sfm.diag.values.get("points", 0)),

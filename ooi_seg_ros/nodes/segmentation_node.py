@@ -50,6 +50,11 @@ class SegNodeConfig:
     every_n_keyframes: int = dataclasses.field(
         default=10, metadata={"doc": "re-segment after this many new keyframes (0 = only on "
                                      "the ~/segment service)"})
+    idle_run_s: float = dataclasses.field(
+        default=2.0, metadata={"doc": "also re-segment when keyframes came since the last run "
+                                      "and no keyframe or cloud arrived for this long (the "
+                                      "last keyframes of a flight need not wait for N more; "
+                                      "0 = off)"})
     min_keyframes: int = dataclasses.field(
         default=8, metadata={"doc": "keyframes needed before the first automatic run"})
     max_keyframes: int = dataclasses.field(
@@ -78,6 +83,7 @@ class SegNodeConfig:
 SPECS = {
     "every_n_keyframes": ParamSpec("re-segment after N new keyframes (0 = service only)", 0,
                                    100000),
+    "idle_run_s": ParamSpec("re-segment after this long without input (0 = off)", 0.0, 3600.0),
     "min_keyframes": ParamSpec("keyframes before the first run", 2, 100000),
     "max_keyframes": ParamSpec("keyframes kept in memory", 2, 1000000, read_only=True),
     "mask_stride": ParamSpec("publish masks for every k-th keyframe", 1, 1000),
@@ -137,12 +143,16 @@ class SegmentationNode(Node):
         self.pub_mask = self.create_publisher(Image, "ooi/mask",
                                               reliable_qos(depth=self.cfg.mask_qos_depth))
         self.create_service(Trigger, "~/segment", self.on_segment_srv)
+        self._last_input = time.monotonic()
+        self.last_run_newest_ns: Optional[int] = None  # newest keyframe of the last run
+        self.create_timer(0.5, self._on_idle_timer)
         self.diag.set_state("waiting for keyframes and the SfM cloud")
 
     # ---- inputs -------------------------------------------------------------------------
     def _part(self, stamp_ns: int, key: str, value) -> None:
         if self.assembler.add(stamp_ns, key, value):
             self._new_since_run += 1
+            self._last_input = time.monotonic()
         self._maybe_run()
 
     @guarded("dropped_keyframe_image")
@@ -162,6 +172,7 @@ class SegmentationNode(Node):
     @guarded("dropped_cloud")
     def on_points(self, msg: PointCloud2) -> None:
         self._points_msg = msg
+        self._last_input = time.monotonic()
         self._maybe_run()
 
     @guarded("dropped_cloud")
@@ -174,6 +185,14 @@ class SegmentationNode(Node):
         if n <= 0 or self._points_msg is None or len(self.keyframes) < self.cfg.min_keyframes:
             return
         if self._new_since_run >= n or self.runs == 0:
+            self.trigger()
+
+    def _on_idle_timer(self) -> None:
+        idle = self.cfg.idle_run_s
+        if (idle > 0 and self.cfg.every_n_keyframes > 0 and self._new_since_run > 0
+                and self._points_msg is not None
+                and len(self.keyframes) >= self.cfg.min_keyframes
+                and time.monotonic() - self._last_input >= idle):
             self.trigger()
 
     def trigger(self) -> bool:
@@ -206,6 +225,7 @@ class SegmentationNode(Node):
             result = segment(capture, cloud, self.seg_cfg)
             self.last_result = result
             self.runs += 1
+            self.last_run_newest_ns = max(v.stamp_ns for v in views)
             self.diag.timing("segment", time.monotonic() - t0)
             self._publish(result, views, full)
             for w in getattr(result, "warnings", []) or []:

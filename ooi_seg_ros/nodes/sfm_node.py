@@ -211,6 +211,9 @@ class SfmNode(Node):
         if last is not None:
             self._pose_dts.append(stamp_ns - last)
         self.poses.tolerance_ns = self.pose_tolerance_ns()
+        if last is not None and stamp_ns - last > self.poses.tolerance_ns:
+            self.diag.count("pose_gaps")  # images inside this gap get no pose
+            self.diag.set("pose_gap_last_s", f"{(stamp_ns - last) / 1e9:.3f}")
         self._drain_pending()
 
     def pose_tolerance_ns(self) -> int:
@@ -261,7 +264,7 @@ class SfmNode(Node):
         self._last_image_ns = stamp_ns
         with self._lock:
             if len(self.pending) == self.pending.maxlen:
-                self.diag.count("dropped_no_pose")  # the oldest waiting image falls out
+                self.diag.count("dropped_pose_late")  # the oldest waiting image falls out
                 self.throttle.warn("nopose", f"image dropped: {self.pending.maxlen} images "
                                              "waiting for a newer pose (pose stream late?)")
             self.pending.append((stamp_ns, msg, cam))
