@@ -34,7 +34,10 @@ VARIANTS = {
     "ours-no-roi": ("ours", {"roi": {"enabled": False}}),
     "ours-mesh-masks": ("ours", {"masks": {"mode": "mesh"}, "refine": {"enabled": False}}),
     "ours+hull": ("ours", {"masks": {"hull_consistency": True}}),
-    "ours-no-hull": ("ours", {"masks": {"hull_consistency": False}}),
+    "ours-no-carve": ("ours", {"masks": {"hull_carve": False}}),
+    "ours-obs-seeds": ("ours", {"masks": {"hull_carve": False},
+                                "refine": {"fg_seeds": "observations"}}),
+    "ours-grow": ("ours", {"noise": {"grow_scale": 2.0}}),
 }
 
 

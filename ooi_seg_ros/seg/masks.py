@@ -38,6 +38,10 @@ class MaskConfig:
     hull_consistency: bool = False  # carve a voxel visual hull and re-project it
     hull_resolution: int = 96  # voxels along the longest side of the hull's box
     hull_min_agree: float = 0.9  # share of seeing views whose masks must contain a voxel
+    hull_carve: bool = False  # after refinement: AND each mask with the re-projected voxel hull
+    # of all the refined masks (a blob only a few views claim is carved away)
+    carve_resolution: int = 128  # hull_carve: voxels along the longest side of the hull's box
+    carve_min_agree: float = 0.85  # hull_carve: share of seeing views that must agree
 
 
 def undistorted_dirs(cam: CameraIntrinsics) -> np.ndarray:
@@ -256,6 +260,17 @@ def hull_refine(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndarray
     rad = np.full(len(hull), vs * 0.87)  # half the voxel diagonal
     out = point_masks(hull, rad, views, cfg) if len(hull) else masks
     return out, {"voxel_size": float(vs), "voxels": int(keep.sum())}
+
+
+def hull_carve(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndarray,
+               cfg: MaskConfig) -> tuple[dict[str, np.ndarray], dict]:
+    """Each mask AND the re-projection of the voxel hull carved from all ``masks``."""
+    sub = MaskConfig(closing_kernel=1, hull_resolution=cfg.carve_resolution,
+                     hull_min_agree=cfg.carve_min_agree)
+    hull, p = hull_refine(masks, views, xyz, sub)
+    if p.get("voxels", 0) == 0:
+        return masks, dict(p, applied=False)
+    return {k: m & hull[k] for k, m in masks.items()}, dict(p, applied=True)
 
 
 def render_masks(views: list[View], cfg: MaskConfig, mesh: TriMesh, xyz: np.ndarray

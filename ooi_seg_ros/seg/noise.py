@@ -29,6 +29,8 @@ class NoiseConfig:
     select: str = "largest"  # "largest" (paper) | "central" (nearest the convergence point)
     sor_neighbours: int = 16  # SOR: neighbours per point
     sor_std_ratio: float = 2.0  # SOR: mean-distance threshold in standard deviations
+    grow_scale: float = 0.0  # after selection, add points within this x the median
+    # min_samples-NN distance of a kept point (one hop; 0 = off)
     merge_reach_quantile: float = 0.98  # central: the main cluster's reach = this quantile
     # of its points' distances to the convergence point; other clusters within it are merged
     # (0: within the frame radius instead)
@@ -62,6 +64,14 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
         keep = np.isin(labels, chosen)
     else:
         keep = labels == ids[np.argmax(counts)]
+    if cfg.grow_scale > 0 and keep.any() and not keep.all():
+        # one hop of a wider radius: points a gap too wide for eps from the kept cluster (a
+        # leaf tip, a strut) come back, a whole neighbouring object does not
+        tree = cKDTree(xyz[keep])
+        reach = cfg.grow_scale * eps / cfg.eps_scale
+        d_keep, _ = tree.query(xyz[~keep], k=1, distance_upper_bound=reach)
+        out = np.nonzero(~keep)[0]
+        keep[out[np.isfinite(d_keep)]] = True
     return np.nonzero(keep)[0], {"eps": float(eps), "clusters": int(len(ids)),
                                  "chosen_clusters": int(len(np.unique(labels[keep])))}
 

@@ -3,7 +3,8 @@
 ``method="paper"`` is the literal section-4 pipeline (the baseline). ``method="ours"`` (the
 default) adds the signals an orbit gives for free: the camera-framing region of interest, a
 camera-aware support-plane rule, the DBSCAN cluster the cameras look at, masks splatted from
-the OOI points (no Poisson balloon) and a voxel visual-hull consistency pass. Each stage is a
+the OOI points (no Poisson balloon), a per-view GrabCut refinement seeded by the OOI points
+the views agree on, and a voxel visual-hull carve of the refined masks. Each stage is a
 function with a typed input and output and its own config dataclass, so stages can be swapped
 by configuration.
 """
@@ -21,7 +22,7 @@ from ..core.geometry import cameras_convergence_point
 from ..core.types import Capture, InputError, SfmCloud, TriMesh
 from .density import DensityConfig, density_filter
 from .floor import FloorConfig, floor_filter
-from .masks import MaskConfig, render_masks
+from .masks import MaskConfig, hull_carve, render_masks
 from .mesh import MeshConfig, build_mesh
 from .metrics import scene_metrics
 from .noise import NoiseConfig, noise_filter
@@ -64,8 +65,9 @@ def preset(method: str) -> dict:
                 "noise": {"method": "dbscan", "select": "central", "eps_scale": 1.5},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
-                          "splat_scale": 0.6, "hull_consistency": False},
-                "refine": {"enabled": True}}
+                          "splat_scale": 0.6, "hull_consistency": False,
+                          "hull_carve": True},
+                "refine": {"enabled": True, "fg_seeds": "consistent"}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 
@@ -200,6 +202,10 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
             warnings.append("refine: opencv-python-headless is not installed; masks are the "
                             "unrefined point silhouettes")
         timings["refine"] = time.perf_counter() - t0
+    if cfg.masks.hull_carve:
+        t0 = time.perf_counter()
+        masks, params["hull_carve"] = hull_carve(masks, views, cloud.xyz, cfg.masks)
+        timings["hull_carve"] = time.perf_counter() - t0
     cover = np.array([m.mean() for m in masks.values()])
     n_empty = int((cover == 0).sum())
     if n_empty:

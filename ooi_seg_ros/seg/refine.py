@@ -17,7 +17,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..core.types import SfmCloud, View
-from .masks import fill_small_holes
+from .masks import fill_small_holes, project_distorted
 
 
 @dataclass
@@ -31,6 +31,11 @@ class RefineConfig:
     max_side: int = 256  # crops larger than this are refined at reduced resolution
     max_area_change: float = 0.5  # reject results that grow/shrink the mask by more than this
     hole_max_fraction: float = 0.02  # fill holes smaller than this x the mask area
+    fg_seeds: str = "observations"  # sure-object seeds: "observations" (the 2D features
+    # matched in this view) | "projections" (every OOI point projected: whatever hides it from
+    # this view is, on an orbit, the object itself, so its pixel is object either way) |
+    # "consistent" (projections of the points the first-pass masks agree on; two passes)
+    consistency: float = 0.5  # consistent: min share of views whose first-pass mask holds a point
     voronoi: bool = False  # silhouette pixels nearer a background than an object observation
     # start as probably-background instead of probably-object
     opening: int = 1  # iterations of the binary opening that removes specks from the result
@@ -59,6 +64,16 @@ def _obs_by_view(cloud: SfmCloud, views: list[View]) -> list[np.ndarray]:
     return out
 
 
+def _in_frame(proj: tuple[np.ndarray, np.ndarray], v: View) -> np.ndarray:
+    """Projected pixels [k,2] in front of the camera and inside its image."""
+    uv, z = proj
+    c = v.camera
+    ok = (z > 1e-9) & np.isfinite(uv).all(1)
+    ok &= (uv[:, 0] > -0.5) & (uv[:, 0] < c.width - 0.5)
+    ok &= (uv[:, 1] > -0.5) & (uv[:, 1] < c.height - 0.5)
+    return uv[ok].astype(np.float32)
+
+
 def _draw(seed: np.ndarray, xy: np.ndarray, r: int, box: tuple, scale: float) -> None:
     y0, x0 = box[0], box[2]
     h, w = seed.shape
@@ -71,12 +86,10 @@ def _draw(seed: np.ndarray, xy: np.ndarray, r: int, box: tuple, scale: float) ->
             seed[vv[ok], uu[ok]] = True
 
 
-def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
-                 background: SfmCloud, cfg: RefineConfig) -> tuple[dict, dict]:
-    """GrabCut-refined masks {key: bool [H,W]} and counts of refined/rejected views."""
+def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[np.ndarray],
+                  bg_xy: list[np.ndarray], cfg: RefineConfig) -> tuple[dict, int, int]:
+    """One GrabCut pass over every view with the given seed pixels; (masks, refined, rejected)."""
     import cv2
-    fg_obs = _obs_by_view(ooi, views)
-    bg_obs = _obs_by_view(background, views)
     out, refined, rejected = {}, 0, 0
     for j, v in enumerate(views):
         m = masks[v.key]
@@ -106,12 +119,12 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         gc[crop_s] = cv2.GC_PR_FGD
         bg_seed = np.zeros(crop_s.shape, bool)
         fg_seed = np.zeros(crop_s.shape, bool)
-        _draw(bg_seed, bg_obs[j], cfg.seed_radius, box, scale)
-        _draw(fg_seed, fg_obs[j], cfg.seed_radius, box, scale)
+        _draw(bg_seed, bg_xy[j], cfg.seed_radius, box, scale)
+        _draw(fg_seed, fg_xy[j], cfg.seed_radius, box, scale)
         if cfg.voronoi and fg_seed.any() and bg_seed.any():
-            # silhouette pixels nearer a background observation than any object observation
-            # start as "probably background": the discs' halo over the floor does not train
-            # the object's colour model
+            # silhouette pixels nearer a background observation than any object seed start
+            # as "probably background": the discs' halo over the floor does not train the
+            # object's colour model
             d_fg = ndimage.distance_transform_edt(~fg_seed)
             d_bg = ndimage.distance_transform_edt(~bg_seed)
             gc[crop_s & (d_bg < d_fg)] = cv2.GC_PR_BGD
@@ -145,4 +158,50 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         full[box[0]:box[1], box[2]:box[3]] = res
         out[v.key] = full
         refined += 1
-    return out, {"refined": refined, "rejected": rejected}
+    return out, refined, rejected
+
+
+def point_support(xyz: np.ndarray, masks: dict[str, np.ndarray], views: list[View]
+                  ) -> np.ndarray:
+    """Share [N] of the views that frame each point whose mask contains its projection."""
+    inside = np.zeros(len(xyz))
+    seen = np.zeros(len(xyz))
+    for v in views:
+        uv, z = project_distorted(xyz, v.camera, v.pose)
+        c = v.camera
+        ui, vi = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        ok = (z > 1e-9) & (ui >= 0) & (ui < c.width) & (vi >= 0) & (vi < c.height)
+        seen += ok
+        inside[ok] += masks[v.key][vi[ok].astype(int), ui[ok].astype(int)]
+    return inside / np.maximum(seen, 1)
+
+
+def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
+                 background: SfmCloud, cfg: RefineConfig) -> tuple[dict, dict]:
+    """GrabCut-refined masks {key: bool [H,W]} and counts of refined/rejected views.
+
+    ``fg_seeds="consistent"`` runs two passes: the first seeded by the observations; every
+    OOI point is then scored by the share of views whose first-pass mask holds its projection,
+    and the second pass (from the same splatted silhouettes) is seeded by the projections of
+    the points scoring at least ``consistency`` -- many more seeds per view than the few
+    features matched there, minus the stray points the views disagree about.
+    """
+    fg_obs = _obs_by_view(ooi, views)
+    bg_obs = _obs_by_view(background, views)
+    params: dict = {"fg_seeds": cfg.fg_seeds}
+    if cfg.fg_seeds == "observations":
+        out, refined, rejected = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg)
+    elif cfg.fg_seeds in ("projections", "consistent"):
+        xyz = ooi.xyz
+        if cfg.fg_seeds == "consistent":
+            first, _, _ = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg)
+            support = point_support(xyz, first, views)
+            xyz = xyz[support >= cfg.consistency]
+            params["consistent_points"] = int(len(xyz))
+        fg = [_in_frame(project_distorted(xyz, v.camera, v.pose), v) for v in views]
+        out, refined, rejected = _grabcut_pass(masks, views, fg, bg_obs, cfg)
+    else:
+        raise ValueError(f"refine.fg_seeds={cfg.fg_seeds!r}; use observations, projections "
+                         f"or consistent")
+    params.update({"refined": refined, "rejected": rejected})
+    return out, params
