@@ -75,6 +75,34 @@ def test_adding_keyframes_extends_the_cloud(built):
     assert rep["keyframes"] == N_VIEWS and rep["counts"]["verified_matches"] > 0
 
 
+def test_emitted_cloud_withholds_ill_conditioned_two_view_points(sim, built):
+    sfm, _, cloud = built
+    every = sfm.cloud(conditioned=False)
+    assert len(every) > len(cloud) > 100
+    emitted = {tuple(np.round(p, 9)) for p in cloud.xyz}
+    long = every.track_lengths() >= 3
+    # every multi-view point is emitted; only 2-view points are withheld
+    assert all(tuple(np.round(p, 9)) in emitted for p in every.xyz[long])
+    assert sfm.report()["counts"]["two_view_points_withheld"] == len(every) - len(cloud)
+    scale = sim.scene.summary()["scale"]
+    d_all = np.abs(sim.scene.distance_to_surface(every.xyz)) / scale
+    d_emit = np.abs(sim.scene.distance_to_surface(cloud.xyz)) / scale
+    assert np.median(d_emit) < np.median(d_all)  # what is withheld is the inaccurate part
+    assert np.mean(d_emit > 0.02) < np.mean(d_all > 0.02)
+
+
+def test_guided_matching_grows_tracks_into_later_keyframes(sim, built):
+    _, _, plain = built
+    sfm = IncrementalSfM(IncrementalConfig(guided_matching=True))
+    for v in sim.capture.views:
+        sfm.add_keyframe(v)
+    cloud = sfm.cloud(conditioned=False)
+    assert sfm.report()["counts"]["guided_matches"] > 0
+    assert cloud.track_lengths().mean() > plain.track_lengths().mean()
+    d = np.abs(sim.scene.distance_to_surface(cloud.xyz))
+    assert np.median(d) < 0.005 * sim.scene.summary()["scale"]
+
+
 def test_export_roundtrips_through_pycolmap(built, tmp_path):
     _, _, cloud = built
     write_colmap_model(cloud, tmp_path / "sparse")
