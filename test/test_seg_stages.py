@@ -208,3 +208,24 @@ def test_refine_observations_follow_view_keys():
                      np.array([[1, 1], [3, 3], [2, 2]], np.float32), views)
     obs = _obs_by_view(cloud, [views[3], views[1]])
     assert obs[0].tolist() == [[3, 3]] and obs[1].tolist() == [[2, 2]]
+
+
+def test_point_support_and_hull_carve_remove_a_one_view_blob():
+    """A blob that only one view's mask claims gets no support and is carved from it."""
+    from ooi_seg_ros.seg.masks import hull_carve, point_radii
+    from ooi_seg_ros.seg.refine import point_support
+    views = _ring_views(8)
+    xyz = _sphere(1500)
+    masks = point_masks(xyz, point_radii(xyz, 4, 1.0), views, MaskConfig(closing_kernel=3))
+    stray = np.array([[0.0, 0.0, 1.6]])  # above the sphere, in frame of every view
+    blob = masks[views[0].key].copy()
+    uv, _ = project_distorted(stray, views[0].camera, views[0].pose)
+    u, v = np.rint(uv[0]).astype(int)
+    blob[max(0, v - 3):v + 4, max(0, u - 3):u + 4] = True
+    masks[views[0].key] = blob
+    sup = point_support(np.vstack([xyz, stray]), masks, views)
+    assert np.median(sup[:-1]) > 0.95 and sup[-1] < 0.2
+    carved, p = hull_carve(masks, views, xyz, MaskConfig())
+    assert p["applied"] and not carved[views[0].key][v, u]
+    for vw in views[1:]:  # the consistent masks keep (almost) all of their area
+        assert carved[vw.key].sum() > 0.9 * masks[vw.key].sum()
