@@ -6,8 +6,8 @@ import torch
 from ooi_seg_ros.train import mcmc
 from ooi_seg_ros.train.gaussians import (PLY_FIELDS, init_from_points, load_ply, read_ply_header,
                                          save_ply)
-from ooi_seg_ros.train.loss import (TinyLpips, load_lpips, masked_psnr, photometric_loss,
-                                    ssim_map)
+from ooi_seg_ros.train.loss import (TinyLpips, load_lpips, masked_mean, masked_psnr,
+                                    photometric_loss, ssim_map)
 
 torch.set_num_threads(1)
 
@@ -67,6 +67,25 @@ def test_masked_loss_ignores_outside_pixels():
     assert abs(float(l1_only) - 0.1) < 1e-5
     assert masked_psnr(off, gt, mask) < 21 and masked_psnr(gt, gt, mask) == float("inf")
     assert abs(float(ssim_map(gt, gt).mean()) - 1.0) < 1e-5
+
+
+def test_masked_loss_crop_is_exact():
+    """The loss on the mask's padded bounding box equals the loss on the full image."""
+    g = torch.Generator().manual_seed(1)
+    gt = torch.rand(40, 50, 3, generator=g)
+    for box in ((slice(10, 20), slice(12, 30)), (slice(0, 7), slice(40, 50)),
+                (slice(3, 40), slice(0, 2))):
+        mask = torch.zeros(40, 50, dtype=torch.bool)
+        mask[box] = True
+        mask[box[0].start, box[1].start] = False  # not a full rectangle
+        r = torch.rand(40, 50, 3, generator=g).requires_grad_(True)
+        full = (0.8 * masked_mean((r - gt).abs(), mask)
+                + 0.2 * (1 - masked_mean(ssim_map(r, gt), mask)))
+        crop = photometric_loss(r, gt, mask, 0.2)
+        assert abs(float(full) - float(crop)) < 1e-6
+        ga, = torch.autograd.grad(full, r)
+        gb, = torch.autograd.grad(crop, r)
+        assert torch.allclose(ga, gb, atol=1e-7)
 
 
 def test_lpips_random_weights_and_unavailable(tmp_path):

@@ -58,9 +58,29 @@ def masked_mean(x: torch.Tensor, mask: Optional[torch.Tensor]) -> torch.Tensor:
     return (x * m).sum() / m.sum().clamp_min(1.0)
 
 
+def mask_crop(mask: torch.Tensor, margin: int) -> tuple[slice, slice]:
+    """Row and column slices of the mask's bounding box grown by ``margin`` (clipped)."""
+    rows = torch.nonzero(mask.any(1)).squeeze(1)
+    cols = torch.nonzero(mask.any(0)).squeeze(1)
+    if len(rows) == 0:
+        return slice(0, 0), slice(0, 0)
+    h, w = mask.shape
+    return (slice(max(0, int(rows[0]) - margin), min(h, int(rows[-1]) + 1 + margin)),
+            slice(max(0, int(cols[0]) - margin), min(w, int(cols[-1]) + 1 + margin)))
+
+
 def photometric_loss(render: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor],
                      lambda_dssim: float = 0.2) -> torch.Tensor:
-    """(1 - lambda) L1 + lambda D-SSIM, averaged over object pixels (all if mask is None)."""
+    """(1 - lambda) L1 + lambda D-SSIM, averaged over object pixels (all if mask is None).
+
+    With a mask, both terms are computed on the mask's bounding box grown by the SSIM window's
+    half size: the SSIM of a mask pixel only sees pixels within that margin, and the crop keeps
+    the image border where the box touches it, so the value is the same as on the full image
+    at a fraction of the cost.
+    """
+    if mask is not None:
+        rs, cs = mask_crop(mask.bool(), 11 // 2)
+        render, gt, mask = render[rs, cs], gt[rs, cs], mask[rs, cs]
     l1 = masked_mean((render - gt).abs(), mask)
     dssim = 1.0 - masked_mean(ssim_map(render, gt), mask)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * dssim

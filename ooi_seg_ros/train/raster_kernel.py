@@ -188,6 +188,7 @@ void backward(int W, int H, int tiles_x, int64_t n_tiles, const int64_t* tile_st
     T tr[NPIX], behind[NPIX], gc[NPIX * 3], ga[NPIX];
     int32_t last[NPIX];
     int32_t max_last = 0;
+    bool any_grad = false;
     for (int p = 0; p < NPIX; ++p) {
       tr[p] = T(1);
       behind[p] = T(0);
@@ -205,7 +206,11 @@ void backward(int W, int H, int tiles_x, int64_t n_tiles, const int64_t* tile_st
         gc[3 * p + 1] = g_col[3 * q + 1];
         gc[3 * p + 2] = g_col[3 * q + 2];
         ga[p] = g_acc[q];
+        any_grad = any_grad || gc[3 * p] != T(0) || gc[3 * p + 1] != T(0) ||
+                   gc[3 * p + 2] != T(0) || ga[p] != T(0);
       }
+    // e.g. tiles outside an object mask: every pair gradient would be zero
+    if (!any_grad) continue;
     for (int64_t k = s0 + max_last - 1; k >= s0; --k) {
       const int32_t li = int32_t(k - s0);
       const int64_t g = gid[k];
