@@ -179,6 +179,66 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -
     return out
 
 
+def time_sfm(capture, factors: list[int], n: int = 20) -> None:
+    """Offline: SfM seconds per keyframe on the first n views downscaled by each factor, as
+    the node's worker runs it (alone in the process, unlike inside the stream)."""
+    import numpy as np
+
+    from ooi_seg_ros.core.types import View
+    from ooi_seg_ros.nodes.common import downscale_camera, downscale_rgb
+    from ooi_seg_ros.sfm.incremental import IncrementalSfM
+
+    for f in factors:
+        sfm = IncrementalSfM()
+        ts = []
+        for v in capture.views[:n]:
+            sv = View(v.key, v.stamp_ns, downscale_camera(v.camera, f), v.pose,
+                      image=downscale_rgb(v.get_image(), f))
+            t = time.monotonic()
+            sfm.add_keyframe(sv)
+            ts.append(time.monotonic() - t)
+        print(f"SfM on 1/{f} ({sv.camera.width}x{sv.camera.height}): median "
+              f"{np.median(ts):.2f} s per keyframe over {len(ts)}, {len(sfm.cloud())} points",
+              flush=True)
+
+
+def compare_seg_downscale(capture, factor: int) -> None:
+    """Offline: the segmentation on full-size views vs on 1/factor copies (as the node keeps
+    them), one SfM cloud, masks upscaled to full size; IoU against the ground truth."""
+    import dataclasses
+
+    import numpy as np
+
+    from ooi_seg_ros.core.types import Capture, View
+    from ooi_seg_ros.nodes.common import downscale_camera, downscale_rgb, upscale_mask
+    from ooi_seg_ros.seg.pipeline import make_config, segment
+    from ooi_seg_ros.sfm.incremental import IncrementalSfM
+
+    small = [View(v.key, v.stamp_ns, downscale_camera(v.camera, factor), v.pose,
+                  image=downscale_rgb(v.get_image(), factor)) for v in capture.views]
+    sfm = IncrementalSfM()
+    for v in small:
+        sfm.add_keyframe(v)
+    cloud = sfm.cloud()
+    cam = capture.views[0].camera
+    for f in (1, factor):
+        views = small if f == factor else [View(v.key, v.stamp_ns, v.camera, v.pose,
+                                                image=v.get_image()) for v in capture.views]
+        s = factor / f  # cloud observations are in the 1/factor pixels
+        c = dataclasses.replace(cloud, views=views, error=cloud.error * s,
+                                obs_xy=((cloud.obs_xy + 0.5) * s - 0.5).astype(np.float32))
+        t = time.monotonic()
+        r = segment(Capture(views=views), c, make_config("ours"))
+        dt = time.monotonic() - t
+        ious = []
+        for v in capture.views:
+            m = upscale_mask(r.masks[v.key], f, cam.width, cam.height)
+            ious.append((m & v.gt_mask).sum() / max((m | v.gt_mask).sum(), 1))
+        print(f"segmentation on {views[0].camera.width}x{views[0].camera.height} keyframes: "
+              f"{dt:.1f} s, mean IoU {np.mean(ious):.3f} (min {np.min(ious):.3f}) over "
+              f"{len(ious)} views, SfM cloud {len(cloud)} points", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="aircraft")
@@ -187,6 +247,10 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=120.0)
     ap.add_argument("--unique", type=int, default=60, help="views rendered along the orbit")
     ap.add_argument("--baseline-duration", type=float, default=20.0)
+    ap.add_argument("--compare-seg-downscale", type=int, default=0, metavar="F",
+                    help="only compare the segmentation on full-size vs 1/F keyframes, offline")
+    ap.add_argument("--time-sfm", default="", metavar="F1,F2",
+                    help="only time SfM per keyframe at these downscale factors, offline")
     ap.add_argument("--default-malloc", action="store_true",
                     help="leave glibc's heap settings alone (the nodes' main() limits them)")
     ap.add_argument("--cache", default="",
@@ -213,6 +277,12 @@ def main() -> None:
             with open(args.cache, "wb") as fh:
                 pickle.dump({"key": key, "capture": cap}, fh)
     print(f"rendered {args.unique} views {w}x{h} in {time.monotonic() - t:.0f} s", flush=True)
+    if args.time_sfm:
+        time_sfm(cap, [int(x) for x in args.time_sfm.split(",")])
+        return
+    if args.compare_seg_downscale:
+        compare_seg_downscale(cap, args.compare_seg_downscale)
+        return
     base = run_case(cap, args.fps, args.baseline_duration, with_nodes=False)
     print(f"baseline (bare subscriber, {args.baseline_duration:.0f} s): {base}", flush=True)
     res = run_case(cap, args.fps, args.duration, with_nodes=True, budget_mb=args.budget_mb)
