@@ -322,3 +322,66 @@ def test_segmentation_on_downscaled_keyframes_publishes_full_size_masks(ctx):
     # check is that the path is exact (sizes, stamps, coordinates), not that tiny copies cost
     # nothing. At 1280x720 -> 640x360 the IoU is unchanged (BENCHMARKS.md, nodes section).
     assert half >= 0.5 and half >= full - 0.1, (full, half, agree)
+
+
+def test_training_masks_are_kept_bit_packed():
+    from ooi_seg_ros.nodes.training_node import _mask_at
+
+    rng = np.random.default_rng(1)
+    m = rng.random((61, 97)) > 0.5
+    bits = np.packbits(m, axis=None)
+    assert bits.nbytes == (61 * 97 + 7) // 8  # 1/8 of the bool mask
+    assert np.array_equal(_mask_at(bits, m.shape, 1), m)
+    block = np.zeros((8, 8), bool)
+    block[:2, :2] = True  # a quarter of the top-left 4x4 block, all of the next one down
+    block[4:8, :4] = True
+    half = _mask_at(np.packbits(block, axis=None), block.shape, 4)
+    assert half.tolist() == [[False, False], [True, False]]
+
+
+@pytest.mark.slow
+def test_segmentation_node_reruns_when_input_goes_idle(ctx):
+    """After the last keyframes of a flight (fewer than every_n_keyframes), the node segments
+    again by itself once its input has been idle for idle_run_s."""
+    from rclpy.executors import SingleThreadedExecutor
+    import threading
+
+    from ooi_seg_ros.core.types import View
+    from ooi_seg_ros.sfm.incremental import IncrementalSfM
+
+    kfs = _demo_keyframes(12)
+    views = [View(key="", stamp_ns=msgconv.stamp_to_ns(img.header.stamp),
+                  camera=msgconv.camera_info_to_intrinsics(info),
+                  pose=msgconv.pose_from_msg(pose.pose), image=msgconv.image_to_rgb(img))
+             for info, pose, img, _gt in kfs]
+    sfm = IncrementalSfM()
+    for v in views:
+        sfm.add_keyframe(v)
+    cloud = sfm.cloud()
+    stamp = msgconv.ns_to_stamp(views[-1].stamp_ns)
+    node = SegmentationNode(context=ctx, namespace=_ns(), parameter_overrides=[
+        Parameter("every_n_keyframes", value=100), Parameter("min_keyframes", value=8),
+        Parameter("idle_run_s", value=0.5)])
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    spin = threading.Thread(target=ex.spin, daemon=True)
+    spin.start()
+    try:
+        node.on_points(msgconv.sfm_cloud_to_pointcloud2(cloud, stamp))
+        node.on_obs(msgconv.observations_to_pointcloud2(cloud, stamp))
+        for info, pose, img, _gt in kfs:
+            node.on_kf_info(info)
+            node.on_kf_pose(pose)
+            node.on_kf_image(img)
+        newest = max(node.keyframes)
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and (node.last_run_newest_ns != newest
+                                               or node._busy.locked()):
+            time.sleep(0.1)
+        assert node.last_error is None, node.last_error
+        assert node.last_run_newest_ns == newest  # a run covered the last keyframes
+        assert node.runs >= 2  # the first at min_keyframes, then the idle one
+    finally:
+        ex.shutdown()
+        spin.join(timeout=5)
+        node.destroy_node()
