@@ -8,6 +8,12 @@ Verified matches are merged into tracks by an incremental union-find. ``cloud()`
 only tracks that changed since the last call (multi-view DLT with the poses fixed), drops
 observations with a large reprojection error, and keeps points with enough triangulation angle
 and track length. Every point keeps its colour, reprojection error and observations.
+
+The emitted cloud holds every point seen by 3+ keyframes but only the 2-view points that are
+about as well conditioned as those (position uncertainty from the ray geometry, reprojection
+error): a wrong match that lies on the epipolar line passes the epipolar check and cannot be
+caught by reprojection error in two views, and these points carry most of the inaccuracy.
+Optional guided matching projects known points into each new keyframe to grow their tracks.
 """
 
 from __future__ import annotations
