@@ -149,6 +149,7 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -
             "skipped": {k: v for k, v in c.items() if k.startswith("skipped") and v},
             "keyframes": sfm.selector.accepted, "keyframes_processed": sfm.keyframes_processed,
             "sfm_points": int(sfm.diag.values.get("points", 0)),
+            "sfm_map_mb": sfm.diag.values.get("sfm_map_mb"),
             "segmentation_runs": seg.runs,
             "ooi_points": len(msgconv.pointcloud2_to_xyzrgb(got["ooi"][-1][1])[0])
             if got["ooi"] else 0,

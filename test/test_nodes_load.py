@@ -385,3 +385,33 @@ def test_segmentation_node_reruns_when_input_goes_idle(ctx):
         ex.shutdown()
         spin.join(timeout=5)
         node.destroy_node()
+
+
+@pytest.mark.slow
+def test_sfm_map_stops_growing_at_its_byte_budget(ctx):
+    from ooi_seg_ros.sim import simulate_capture
+
+    cap = simulate_capture("aircraft", n_views=6, width=160, height=120, seed=0,
+                           supersample=1).capture
+    node = SfmNode(context=ctx, namespace=_ns(), parameter_overrides=[
+        Parameter("sfm_budget_mb", value=0.01),  # below one keyframe's features
+        Parameter("keyframes.translation_frac", value=0.0)])
+    try:
+        def feed(k, v):
+            stamp = 10 ** 9 + k * 10 ** 8
+            node.on_camera_info(msgconv.intrinsics_to_camera_info(v.camera, stamp))
+            node.on_pose(msgconv.pose_to_pose_stamped(v.pose, stamp, "map"))
+            node.on_image(msgconv.rgb_to_image(v.get_image(), stamp, "cam"))
+
+        feed(0, cap.views[0])
+        deadline = time.monotonic() + 60
+        while node.keyframes_processed < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert node.map_full and node.map_bytes > 0
+        for k, v in enumerate(cap.views[1:], start=1):
+            feed(k, v)
+        assert node.selector.accepted == 1
+        assert node.selector.dropped["max_keyframes"] == len(cap.views) - 1
+    finally:
+        node.close()
+        node.destroy_node()

@@ -43,7 +43,7 @@ from ..sfm.incremental import IncrementalConfig, IncrementalSfM
 from ..sfm.keyframes import KeyframeConfig, KeyframeSelector
 from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, check_image_msg,
                      downscale_camera, downscale_factor, downscale_rgb, guarded, latched_qos,
-                     reliable_qos, run_node, scale_pixels, sensor_qos)
+                     physical_memory_bytes, reliable_qos, run_node, scale_pixels, sensor_qos)
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
@@ -86,6 +86,10 @@ class SfmNodeConfig:
     pose_qos_depth: int = dataclasses.field(
         default=100, metadata={"doc": "depth of the pose and camera_info subscriptions (small "
                                       "messages: a deep queue rides out a busy moment)"})
+    sfm_budget_mb: float = dataclasses.field(
+        default=0.0, metadata={"doc": "MiB the SfM map (features, tracks) may grow to; beyond "
+                                      "it no further keyframes are taken, counted and logged "
+                                      "(0 = 1/16 of the RAM within 256..1024)"})
     keyframe_qos_depth: int = dataclasses.field(
         default=10, metadata={"doc": "history depth of the keyframe publishers (full-size "
                                      "images held by the middleware)"})
@@ -104,6 +108,8 @@ SPECS = {
     "image_qos_depth": ParamSpec("depth of the image subscriptions", 1, 1000, read_only=True),
     "pose_qos_depth": ParamSpec("depth of the pose/camera_info subscriptions", 1, 100000,
                                 read_only=True),
+    "sfm_budget_mb": ParamSpec("MiB the SfM map may grow to (0 = auto)", 0.0, 1e6,
+                               read_only=True),
     "keyframe_qos_depth": ParamSpec("history depth of the keyframe publishers", 1, 1000,
                                     read_only=True),
     "pose_buffer_s": ParamSpec("seconds of pose history kept", 0.1, 600.0),
@@ -152,6 +158,13 @@ class SfmNode(Node):
         self._select_lock = threading.Lock()  # keyframe selection is stateful: one at a time
         self._last_image_ns = -1
         self.keyframes_processed = 0
+        mib = 2 ** 20
+        ram = physical_memory_bytes()
+        self.map_budget = (int(self.cfg.sfm_budget_mb * mib) if self.cfg.sfm_budget_mb > 0
+                           else int(min(max(ram // 16, 256 * mib), 1024 * mib)) if ram
+                           else 512 * mib)
+        self.map_bytes = 0
+        self.map_full = False
         self.keyframe_times: collections.deque = collections.deque(maxlen=200)  # s per kf
         self.sfm_factor: Optional[int] = None  # downscale of SfM's images (first keyframe)
 
@@ -358,6 +371,7 @@ class SfmNode(Node):
                 self.throttle.warn("sfm", f"SfM failed on keyframe {view.key}: {exc}")
                 continue
             self.keyframes_processed += 1
+            self._account_map()
             self.keyframe_times.append(time.monotonic() - t0)
             self.diag.timing("keyframe", self.keyframe_times[-1])
             self.diag.timing("keyframe_median", float(np.median(self.keyframe_times)))
@@ -369,6 +383,30 @@ class SfmNode(Node):
                 except Exception as exc:  # noqa: BLE001 — keep the worker alive
                     self.diag.count("error_publish")
                     self.throttle.warn("publish", f"publishing the cloud failed: {exc}")
+
+    def _account_map(self) -> None:
+        """Estimates the SfM map's bytes; at the budget, stops taking keyframes (logged).
+
+        The estimate is twice the numpy arrays of each SfM keyframe (keypoints, descriptors,
+        colours): the tracks' Python structures measured about as much again.
+        """
+        kfs = self.sfm.keyframes
+        if kfs:
+            kf = kfs[-1]
+            self.map_bytes += 2 * sum(v.nbytes for v in vars(kf).values()
+                                      if isinstance(v, np.ndarray))
+        self.diag.set("sfm_map_mb", f"{self.map_bytes / 2 ** 20:.1f}")
+        if self.map_bytes >= self.map_budget and not self.map_full:
+            self.map_full = True
+            cap = self.kf_cfg.max_keyframes
+            self.kf_cfg.max_keyframes = min(cap, self.selector.accepted) if cap else \
+                self.selector.accepted  # the selector refuses more
+            self.diag.set_state("SfM map at its memory budget: no further keyframes")
+            self.get_logger().warning(
+                f"SfM map reached ~{self.map_bytes / 2 ** 20:.0f} MiB (sfm_budget_mb "
+                f"{self.map_budget / 2 ** 20:.0f}) after {len(kfs)} keyframes: no further "
+                "keyframes are taken (counted as skipped_max_keyframes); raise sfm_budget_mb "
+                "or keyframe spacing")
 
     def _sfm_view(self, view: View) -> View:
         """The keyframe as SfM sees it: downscaled copy, scaled intrinsics, no full image.
