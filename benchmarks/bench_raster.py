@@ -1,8 +1,10 @@
 """Forward+backward throughput of the CPU tile rasteriser next to the brute-force reference.
 
 Random Gaussians filling a sphere in front of the camera (a dense object-like footprint).
-Prints it/s for both renderers in the same run; the reference only where its dense
-[N, H*W] tensors fit in --ref-max-elems.
+Prints it/s in the same run for: the tile rasteriser with the compiled compositing kernel, the
+same rasteriser on its pure-torch path, and the brute-force reference (only where its dense
+[N, H*W] tensors fit in --ref-max-elems). The torch path is skipped where it would exceed
+--torch-max-pairs tile pairs (it takes tens of seconds per iteration there).
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_raster.py [--sizes 320x240,640x480]
         [--counts 10000,50000,200000] [--reps 3] [--threads 1]
@@ -18,7 +20,9 @@ import torch
 
 from ooi_seg_ros.core.geometry import look_at
 from ooi_seg_ros.core.types import CameraIntrinsics
-from ooi_seg_ros.train import raster_cpu, raster_reference
+import functools
+
+from ooi_seg_ros.train import raster_cpu, raster_kernel, raster_reference
 from ooi_seg_ros.train.gaussians import init_from_points
 from ooi_seg_ros.train.raster_common import RasterCamera
 
@@ -44,10 +48,17 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--ref-max-elems", type=float, default=3e8)
+    ap.add_argument("--torch-max-pairs", type=float, default=3e5)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
+    if not raster_kernel.available():
+        print(f"kernel unavailable: {raster_kernel.unavailable_reason()}")
+        return
     rng = np.random.default_rng(0)
-    print(f"{'size':>8} {'N':>7} {'pairs':>9} {'tile it/s':>10} {'reference it/s':>15}")
+    kern = functools.partial(raster_cpu.render, kernel=True)
+    torch_path = functools.partial(raster_cpu.render, kernel=False)
+    print(f"{'size':>8} {'N':>7} {'pairs':>9} {'kernel it/s':>12} {'torch it/s':>11} "
+          f"{'reference it/s':>15}")
     for size in a.sizes.split(","):
         w, h = (int(x) for x in size.split("x"))
         cam = CameraIntrinsics(width=w, height=h, fx=0.9 * w, fy=0.9 * w, cx=(w - 1) / 2,
@@ -57,11 +68,14 @@ def main() -> None:
             d = rng.normal(size=(n, 3))
             pts = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.5, 1.0, (n, 1))
             m = init_from_points(pts, rng.integers(0, 255, (n, 3)), 0.5).requires_grad_(True)
-            tile, pairs = _time(raster_cpu.render, m, rc, a.reps)
+            tile, pairs = _time(kern, m, rc, a.reps)
+            tor = "skipped"
+            if pairs <= a.torch_max_pairs:
+                tor = f"{_time(torch_path, m, rc, a.reps)[0]:.3f}"
             ref = "n/a (memory)"
             if n * w * h <= a.ref_max_elems:
                 ref = f"{_time(raster_reference.render, m, rc, 1)[0]:.3f}"
-            print(f"{size:>8} {n:>7} {pairs:>9} {tile:>10.3f} {ref:>15}", flush=True)
+            print(f"{size:>8} {n:>7} {pairs:>9} {tile:>12.3f} {tor:>11} {ref:>15}", flush=True)
 
 
 if __name__ == "__main__":

@@ -130,3 +130,13 @@ def test_cli_train_and_export(sim, tmp_path):
     with pytest.raises(InputError, match="out of range"):
         export_cli.run(Namespace(bag=str(out / "training.mcap"), out=str(ply), index=99,
                                  topic="/train/splats"))
+
+
+def test_schedule_follows_time_budget():
+    """With a time budget the schedules run on elapsed time when that is further along."""
+    from ooi_seg_ros.train.trainer import _progress
+    cfg = TrainConfig(iterations=1000)
+    assert _progress(1, cfg, 50.0) == 0.0 and abs(_progress(1000, cfg, 0.0) - 1.0) < 1e-12
+    cfg = TrainConfig(iterations=100000, time_budget_s=100.0)
+    assert abs(_progress(10, cfg, 50.0) - 0.5) < 1e-9
+    assert _progress(10, cfg, 500.0) == 1.0

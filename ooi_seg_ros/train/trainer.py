@@ -59,7 +59,9 @@ class TrainConfig:
     initial_opacity: float = 0.5  # opacity of the initial Gaussians
     max_memory_fraction: float = 0.7  # refuse to start above this share of available RAM
     backend: str = "auto"  # "cpu", "gsplat" (CUDA) or "auto"
-    time_budget_s: float = 0.0  # stop early after this many seconds of training (0 = none)
+    time_budget_s: float = 0.0  # stop after this many seconds of training (0 = none); the
+    # schedules (position lr decay, refinement window) then follow the larger of the step and
+    # time fractions, so a run cut by the budget still anneals instead of stopping mid-schedule
     threads: int = 1  # torch CPU threads (0 = torch default); >1 collapses on a loaded box
 
 
@@ -395,7 +397,6 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
     good = model.detached()
     order: list[int] = []
     preview_frames = (held_frames or train_frames)[:2]
-    refine_stop = int(cfg.refine_stop_frac * cfg.iterations)
     t0 = time.time()
     loss_v, psnr_v = float("nan"), 0.0
     done = cfg.iterations
@@ -404,7 +405,8 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
             done = it - 1
             break
         model.sh_degree = min(cfg.sh_degree, (it - 1) // max(1, cfg.sh_degree_interval))
-        lr_m = lr_means0 * 0.01 ** ((it - 1) / max(1, cfg.iterations - 1))
+        frac = _progress(it, cfg, time.time() - t0)
+        lr_m = lr_means0 * 0.01 ** frac
         opt.param_groups[0]["lr"] = lr_m
         if not order:
             order = torch.randperm(len(train_frames), generator=gen).tolist()
@@ -445,7 +447,7 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
         with torch.no_grad():
             psnr_v = masked_psnr(out.image.detach(), gt, mask)
         result.history.append({"it": it, "loss": loss_v, "psnr": psnr_v, "n": len(model)})
-        if (cfg.refine_every > 0 and cfg.refine_start <= it <= refine_stop
+        if (cfg.refine_every > 0 and cfg.refine_start <= it and frac <= cfg.refine_stop_frac
                 and it % cfg.refine_every == 0):
             _refine(model, opt, cfg, train_frames, gen)
             good = model.detached()
@@ -473,6 +475,14 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
     result.train_keys = [f.key for f in train_frames]
     result.heldout_keys = [f.key for f in held_frames]
     return result
+
+
+def _progress(it: int, cfg: TrainConfig, elapsed: float) -> float:
+    """How far through the run step ``it`` is, in [0, 1]: by steps, or by time if budgeted."""
+    frac = (it - 1) / max(1, cfg.iterations - 1)
+    if cfg.time_budget_s > 0:
+        frac = max(frac, elapsed / cfg.time_budget_s)
+    return min(1.0, frac)
 
 
 @torch.no_grad()
