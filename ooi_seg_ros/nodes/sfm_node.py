@@ -84,8 +84,9 @@ class SfmNodeConfig:
         default=5, metadata={"doc": "depth of the image subscriptions (sensor-data QoS; "
                                     "frames beyond it are the transport's drops)"})
     pose_qos_depth: int = dataclasses.field(
-        default=100, metadata={"doc": "depth of the pose and camera_info subscriptions (small "
-                                      "messages: a deep queue rides out a busy moment)"})
+        default=30, metadata={"doc": "depth of the pose subscription: rides out a busy moment "
+                                     "without letting poses lag the images by more than "
+                                     "pending_images can wait"})
     sfm_budget_mb: float = dataclasses.field(
         default=0.0, metadata={"doc": "MiB the SfM map (features, tracks) may grow to; beyond "
                                       "it no further keyframes are taken, counted and logged "
@@ -106,7 +107,7 @@ SPECS = {
     "sfm_max_pixels": ParamSpec("pixel count SfM images are reduced to (auto)", 10_000,
                                 100_000_000, read_only=True),
     "image_qos_depth": ParamSpec("depth of the image subscriptions", 1, 1000, read_only=True),
-    "pose_qos_depth": ParamSpec("depth of the pose/camera_info subscriptions", 1, 100000,
+    "pose_qos_depth": ParamSpec("depth of the pose subscription", 1, 100000,
                                 read_only=True),
     "sfm_budget_mb": ParamSpec("MiB the SfM map may grow to (0 = auto)", 0.0, 1e6,
                                read_only=True),
@@ -152,6 +153,7 @@ class SfmNode(Node):
         self.selector = KeyframeSelector(self.kf_cfg)
         self.sfm = IncrementalSfM(self.sfm_cfg)
         self.camera: Optional[CameraIntrinsics] = None
+        self._camera_key: Optional[tuple] = None
         self.pending: collections.deque = collections.deque(maxlen=self.cfg.pending_images)
         self.work: queue.Queue = queue.Queue(maxsize=self.cfg.queue_size)
         self._lock = threading.Lock()
@@ -168,16 +170,17 @@ class SfmNode(Node):
         self.keyframe_times: collections.deque = collections.deque(maxlen=200)  # s per kf
         self.sfm_factor: Optional[int] = None  # downscale of SfM's images (first keyframe)
 
-        # images and poses in separate callback groups: a multi-threaded executor then never
-        # holds a pose back behind an image callback (lost poses cost images)
+        # images, poses and camera_info in separate callback groups: a multi-threaded
+        # executor then never holds a pose back behind another callback (a late pose makes
+        # images wait, a lost one costs them)
         images, poses = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
         sq = sensor_qos(self.cfg.image_qos_depth)
         pq = sensor_qos(self.cfg.pose_qos_depth)
         self.create_subscription(Image, "image", self.on_image, sq, callback_group=images)
         self.create_subscription(CompressedImage, "image/compressed", self.on_compressed, sq,
                                  callback_group=images)
-        self.create_subscription(CameraInfo, "camera_info", self.on_camera_info, pq,
-                                 callback_group=poses)
+        self.create_subscription(CameraInfo, "camera_info", self.on_camera_info,
+                                 sensor_qos(5), callback_group=MutuallyExclusiveCallbackGroup())
         if self.cfg.pose_type == "odometry":
             self.create_subscription(Odometry, "pose", self.on_odometry, pq,
                                      callback_group=poses)
@@ -199,8 +202,11 @@ class SfmNode(Node):
     # ---- inputs -------------------------------------------------------------------------
     @guarded("dropped_camera_info")
     def on_camera_info(self, msg: CameraInfo) -> None:
+        key = (msg.width, msg.height, msg.distortion_model, tuple(msg.k), tuple(msg.d))
+        if self.camera is not None and key == self._camera_key:
+            return  # the same calibration at 30 Hz: nothing to convert
         cam = msgconv.camera_info_to_intrinsics(msg)  # raises InputError on K all zeros etc.
-        self.camera = cam
+        self.camera, self._camera_key = cam, key
 
     @guarded("dropped_pose")
     def on_pose(self, msg: PoseStamped) -> None:
