@@ -144,7 +144,8 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -
         out.update({
             "received_by_sfm_node": c.get("images", 0),
             "dropped": {k: v for k, v in c.items() if k.startswith("dropped") and v},
-            "pose_gaps": c.get("pose_gaps", 0), "pose_gap_last_s": sfm.diag.values.get(
+            "pose_gaps": c.get("pose_gaps", 0), "pose_jumps": c.get("pose_jumps", 0),
+            "pose_gap_last_s": sfm.diag.values.get(
                 "pose_gap_last_s"),
             "skipped": {k: v for k, v in c.items() if k.startswith("skipped") and v},
             "keyframes": sfm.selector.accepted, "keyframes_processed": sfm.keyframes_processed,

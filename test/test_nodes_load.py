@@ -157,12 +157,12 @@ def test_sfm_node_decodes_candidates_only_and_bridges_lost_poses(ctx):
         lost = set(range(20, 24)) | {50, 51}  # bursts of 4 and 2 lost pose messages
         for k in range(n):
             stamp = 10 ** 9 + k * period
-            pose = _orbit_pose(k // 3, 60)  # moves 6 degrees every 3 frames
+            pose = _orbit_pose(k, 240)  # 1.5 degrees per frame
             if k not in lost:
                 node.on_pose(msgconv.pose_to_pose_stamped(pose, stamp, "map"))
             rgb = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
             node.on_image(msgconv.rgb_to_image(rgb, stamp, "cam"))
-        node.on_pose(msgconv.pose_to_pose_stamped(_orbit_pose(n // 3, 60), 10 ** 9 + n * period,
+        node.on_pose(msgconv.pose_to_pose_stamped(_orbit_pose(n, 240), 10 ** 9 + n * period,
                                                   "map"))
         c = node.diag.counters
         assert c["images"] == n
@@ -177,9 +177,15 @@ def test_sfm_node_decodes_candidates_only_and_bridges_lost_poses(ctx):
         # a gap longer than the tolerance is not bridged: counted, not guessed
         s0 = 10 ** 9 + (n + 20) * period
         node.on_image(msgconv.rgb_to_image(np.zeros((48, 64, 3), np.uint8), s0, "cam"))
-        node.on_pose(msgconv.pose_to_pose_stamped(_orbit_pose(40, 60), s0 + 10 * period,
+        node.on_pose(msgconv.pose_to_pose_stamped(_orbit_pose(n + 30, 240), s0 + 10 * period,
                                                   "map"))
         assert c["dropped_no_pose"] == 1
+        # nor is a short gap across which the camera jumped (half a keyframe step or more)
+        s1 = s0 + 11 * period
+        node.on_image(msgconv.rgb_to_image(np.zeros((48, 64, 3), np.uint8), s1, "cam"))
+        node.on_pose(msgconv.pose_to_pose_stamped(_orbit_pose(n + 50, 240), s1 + period,
+                                                  "map"))
+        assert c["dropped_pose_jump"] == 1
     finally:
         node.close()
         node.destroy_node()

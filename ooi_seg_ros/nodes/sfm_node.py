@@ -40,7 +40,7 @@ from ..core.geometry import quat_xyzw_to_matrix
 from ..core.sync import PoseBuffer
 from ..core.types import CameraIntrinsics, InputError, Pose, View
 from ..sfm.incremental import IncrementalConfig, IncrementalSfM
-from ..sfm.keyframes import KeyframeConfig, KeyframeSelector
+from ..sfm.keyframes import KeyframeConfig, KeyframeSelector, rotation_angle_deg
 from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, check_image_msg,
                      downscale_camera, downscale_factor, downscale_rgb, guarded, latched_qos,
                      physical_memory_bytes, reliable_qos, run_node, scale_pixels, sensor_qos)
@@ -150,6 +150,9 @@ class SfmNode(Node):
         self.poses = PoseBuffer(max_age_ns=int(self.cfg.pose_buffer_s * 1e9),
                                 tolerance_ns=int(self.cfg.pose_tolerance_s * 1e9))
         self._pose_dts: collections.deque = collections.deque(maxlen=64)  # recent periods, ns
+        self._last_pose: Optional[Pose] = None
+        self._prev_pose: Optional[tuple[int, Pose]] = None  # the pose before the last one
+        self._jumps: collections.deque = collections.deque(maxlen=64)  # (t0, t1) ns
         self.selector = KeyframeSelector(self.kf_cfg)
         self.sfm = IncrementalSfM(self.sfm_cfg)
         self.camera: Optional[CameraIntrinsics] = None
@@ -221,6 +224,7 @@ class SfmNode(Node):
     def _add_pose(self, stamp_ns: int, pose: Pose) -> None:
         with self._lock:  # lookups run in the image callback's thread
             last = self.poses.latest_ns
+            last_pose = self._last_pose
             added = self.poses.add(stamp_ns, pose)
         if not added:
             self.diag.count("dropped_pose")
@@ -233,6 +237,13 @@ class SfmNode(Node):
         if last is not None and stamp_ns - last > self.poses.tolerance_ns:
             self.diag.count("pose_gaps")  # images inside this gap get no pose
             self.diag.set("pose_gap_last_s", f"{(stamp_ns - last) / 1e9:.3f}")
+        elif last is not None and self._pose_dts and \
+                stamp_ns - last > 1.5 * float(np.median(self._pose_dts)):
+            with self._lock:  # poses were lost: interpolate across only if motion was smooth
+                self._check_gap(last, last_pose, stamp_ns, pose)
+        if last is not None:
+            self._prev_pose = (last, last_pose)
+        self._last_pose = pose
         self._drain_pending()
 
     def pose_tolerance_ns(self) -> int:
@@ -248,6 +259,29 @@ class SfmNode(Node):
             return 100_000_000
         period = float(np.median(np.asarray(self._pose_dts, np.float64)))
         return int((self.cfg.pose_max_lost + 1) * period)
+
+    def _check_gap(self, t0: int, p0: Pose, t1: int, p1: Pose) -> None:
+        """Marks the pose gap (t0, t1) as a jump when the camera moved across it much more than
+        its speed just before predicts (a teleport, a reset of the pose source): images in it
+        get no interpolated pose. Smooth motion, however fast, interpolates."""
+        prev = self._prev_pose
+        if prev is None:
+            return
+        tp, pp = prev
+        dt_prev, dt_gap = max(t0 - tp, 1), t1 - t0
+        rate_r = rotation_angle_deg(pp.R, p0.R) / dt_prev
+        rate_t = float(np.linalg.norm(p0.t - pp.t)) / dt_prev
+        turned = rotation_angle_deg(p0.R, p1.R)
+        moved = float(np.linalg.norm(p1.t - p0.t))
+        scale = self.selector.scene_scale
+        slack_r = 0.25 * self.kf_cfg.rotation_deg  # a quarter of a keyframe step
+        slack_t = 0.25 * self.kf_cfg.translation_frac * scale if scale else np.inf
+        if turned > 2 * rate_r * dt_gap + slack_r or moved > 2 * rate_t * dt_gap + slack_t:
+            self._jumps.append((t0, t1))
+            self.diag.count("pose_jumps")
+
+    def _in_jump(self, stamp_ns: int) -> bool:
+        return any(t0 < stamp_ns < t1 for t0, t1 in self._jumps)
 
     @guarded("dropped_image")
     def on_image(self, msg: Image) -> None:
@@ -310,7 +344,12 @@ class SfmNode(Node):
             keep = collections.deque(maxlen=self.pending.maxlen)
             for stamp_ns, msg, cam in self.pending:
                 pose = self.poses.lookup(stamp_ns)
-                if pose is not None:
+                if pose is not None and self._in_jump(stamp_ns):
+                    self.diag.count("dropped_pose_jump")
+                    self.throttle.warn("posejump", "image dropped: the camera moved too far "
+                                                   "across the pose gap around its stamp to "
+                                                   "trust an interpolated pose")
+                elif pose is not None:
                     ready.append((stamp_ns, msg, cam, pose))
                 elif self.poses.is_too_old(stamp_ns):
                     self.diag.count("dropped_no_pose")
