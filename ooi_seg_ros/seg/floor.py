@@ -48,6 +48,8 @@ class FloorConfig:
     band_mirror_quantile: float = 0.99  # support mode: band >= this quantile of the depths of
     # the points just below the plane (only floor lies below it, so its underside measures how
     # thick the floor's skin of SfM points is; 0 disables)
+    layer_attach: float = 0.0  # support mode: keep points between the inliers' band and the
+    # floor's thickness that lie within this x threshold of a point above it (0 = off)
     band_mirror_window: float = 10.0  # support mode: "just below" = within this x threshold
     seed: int = 0  # RANSAC seed
 
@@ -141,6 +143,14 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
             mirror = float(np.quantile(below, cfg.band_mirror_quantile))
             band = max(band, mirror)
     keep = sd > band
+    layer = (sd > band_inliers) & ~keep
+    if cfg.layer_attach > 0 and layer.any() and keep.any():
+        # the object's foot (a pot's base, a tyre) lies in the layer between the inliers' band
+        # and the floor's thickness: layer points touching a point above the band stay
+        from scipy.spatial import cKDTree
+        d, _ = cKDTree(xyz[keep]).query(xyz[layer], k=1,
+                                        distance_upper_bound=cfg.layer_attach * thr)
+        keep[np.nonzero(layer)[0][np.isfinite(d)]] = True
     return np.nonzero(keep)[0], {"support_plane": plane.tolist(), "band": band,
                                  "band_inliers": band_inliers, "band_mirror": mirror,
                                  "threshold": thr,

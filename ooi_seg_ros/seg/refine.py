@@ -35,7 +35,9 @@ class RefineConfig:
     # matched in this view) | "projections" (every OOI point projected: whatever hides it from
     # this view is, on an orbit, the object itself, so its pixel is object either way) |
     # "consistent" (projections of the points the first-pass masks agree on; two passes)
-    consistency: float = 0.5  # consistent: min share of views whose first-pass mask holds a point
+    second_init: str = "splat"  # consistent: probable-object region of the second pass:
+    # "splat" (the splatted silhouette) | "first" (the first pass's result)
+    consistency: float = 0.7  # consistent: min share of views whose first-pass mask holds a point
     voronoi: bool = False  # silhouette pixels nearer a background than an object observation
     # start as probably-background instead of probably-object
     opening: int = 1  # iterations of the binary opening that removes specks from the result
@@ -199,7 +201,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
             xyz = xyz[support >= cfg.consistency]
             params["consistent_points"] = int(len(xyz))
         fg = [_in_frame(project_distorted(xyz, v.camera, v.pose), v) for v in views]
-        out, refined, rejected = _grabcut_pass(masks, views, fg, bg_obs, cfg)
+        init = first if cfg.fg_seeds == "consistent" and cfg.second_init == "first" else masks
+        out, refined, rejected = _grabcut_pass(init, views, fg, bg_obs, cfg)
     else:
         raise ValueError(f"refine.fg_seeds={cfg.fg_seeds!r}; use observations, projections "
                          f"or consistent")
