@@ -148,6 +148,20 @@ def test_gsplat_unavailable_without_cuda():
         assert choose_backend("auto") == "cpu"
 
 
+def test_kernel_huge_and_degenerate_splats():
+    """A Gaussian far larger than the image and non-finite parameters: no crash, same result."""
+    m, rc = _scene(n=30, w=32, h=24, seed=7)
+    with torch.no_grad():
+        m.log_scales[0] += 12.0  # footprint of ~1e5 pixels
+        m.means[1] = float("nan")
+        m.log_scales[2] = float("inf")
+    bg = torch.tensor([0.2, 0.2, 0.2])
+    a = raster_cpu.render(m, rc, bg, kernel=True)
+    b = raster_cpu.render(m, rc, bg, kernel=False)
+    assert torch.isfinite(a.image).all()
+    assert float((a.image - b.image).abs().max()) < 1e-4
+
+
 def test_kernel_fallback_when_build_impossible(monkeypatch, tmp_path, caplog):
     """No compiler: the loader logs why once and the rasteriser uses the torch path."""
     monkeypatch.setattr(raster_kernel, "_lib", None)

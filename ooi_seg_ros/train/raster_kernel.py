@@ -97,8 +97,9 @@ inline bool row_span(const Splat<T>& s, int y, int x0, int x1, int& xs, int& xe)
   T lo = s.mx + (-bdy - sq) / s.a - T(1e-3);
   T hi = s.mx + (-bdy + sq) / s.a + T(1e-3);
   if (!(hi >= T(x0)) || !(lo <= T(x1 - 1))) return false;
-  xs = std::max(x0, (int)std::ceil(lo));
-  xe = std::min(x1 - 1, (int)std::floor(hi));
+  // clamp before the integer conversion (a huge footprint must not overflow int)
+  xs = (int)std::ceil(std::max(lo, T(x0)));
+  xe = (int)std::floor(std::min(hi, T(x1 - 1)));
   return xs <= xe;
 }
 
