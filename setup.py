@@ -19,6 +19,9 @@ setup(
         (os.path.join("share", package_name, "config"), glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],
+    # optional CUDA rasteriser (JIT-compiles its kernels on first use; needs nvcc + ninja);
+    # checked against the CPU rasteriser on an H100 (test/test_raster_gsplat.py)
+    extras_require={"gpu": ["gsplat==1.5.3"]},
     zip_safe=True,
     maintainer="ooi_seg_ros maintainers",
     maintainer_email="maintainers@ooi-seg-ros.invalid",
