@@ -54,8 +54,8 @@ class IncrementalConfig:
     conditioned_two_view: bool = True  # cloud(): emit only the well-conditioned 2-view points:
     two_view_uncertainty_quantile: float = 0.75  # position uncertainty at most this quantile of
     # the multi-view (3+ keyframe) points' uncertainties ...
-    two_view_residual_quantile: float = 0.5  # ... and reprojection error at most this quantile
-    # of the multi-view points' errors (an epipolar-line mismatch fits its two rays worse)
+    two_view_residual_quantile: float = 0.5  # ... and reprojection error (per degree of
+    # freedom) at most this quantile of the multi-view points' (a mismatch fits its rays worse)
     guided_desc_quantile: float = 0.9  # guided match: descriptor distance up to this quantile
     # of the keyframe's own verified descriptor matches
     seed: int = 0  # seed for anything random (none at present; kept for determinism)
@@ -538,7 +538,10 @@ class IncrementalSfM:
             multi = lens >= 3
             if multi.any() and not multi.all():
                 unc = self._uncertainty([v[0] for _, v in pts], [v[2] for _, v in pts])
-                err = np.array([v[3] for _, v in pts])
+                # mean residual per observation, corrected for the residual's degrees of
+                # freedom (2L measurements - 3 unknowns): a 2-view point fits its rays more
+                # closely than a 3-view one with the same image noise
+                err = np.array([v[3] for _, v in pts]) / np.sqrt((2 * lens - 3) / (2 * lens))
                 keep = multi | (
                     (unc <= np.quantile(unc[multi], cfg.two_view_uncertainty_quantile))
                     & (err <= np.quantile(err[multi], cfg.two_view_residual_quantile)))
