@@ -31,6 +31,15 @@ def test_ours_beats_paper_on_sim(aircraft):
     assert not ours.warnings
 
 
+def test_on_cloud_sees_the_final_ooi_cloud_before_the_masks(aircraft):
+    sim, cloud = aircraft
+    seen = []
+    res = segment(sim.capture, cloud, make_config("ours", {"refine": {"enabled": False}}),
+                  on_cloud=lambda c: seen.append(c.xyz.copy()))
+    assert len(seen) == 1
+    np.testing.assert_array_equal(seen[0], res.ooi_cloud.xyz)
+
+
 def test_deterministic(aircraft):
     sim, cloud = aircraft
     a = segment(sim.capture, cloud, make_config("ours", {"seed": 3}))

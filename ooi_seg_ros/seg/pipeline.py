@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -110,9 +110,14 @@ class SegmentationResult:
     stage_clouds: dict = field(default_factory=dict)  # {stage: ([N,3], [N,3] rgb)} (report)
 
 
-def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConfig] = None
-            ) -> SegmentationResult:
-    """Segment the OOI of ``capture`` from ``cloud`` and render a mask for every view."""
+def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConfig] = None,
+            on_cloud: Optional[Callable[[SfmCloud], None]] = None) -> SegmentationResult:
+    """Segment the OOI of ``capture`` from ``cloud`` and render a mask for every view.
+
+    ``on_cloud`` (optional) is called with the OOI cloud as soon as the point stages are done,
+    before the mesh and the per-view masks (the costly part), so that a live node can publish
+    the OOI cloud early. An exception it raises propagates.
+    """
     cfg = config or make_config()
     views = capture.views
     if not views:
@@ -171,6 +176,8 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         else:
             run("floor", lambda x: floor_filter(x, cfg.floor, cam_centers, cam_up, target))
     run("noise", lambda x: noise_filter(x, cfg.noise, target, radius))
+    if on_cloud is not None:
+        on_cloud(cloud)
     t0 = time.perf_counter()
     try:
         mesh, params["mesh"] = build_mesh(cloud, cfg.mesh)
