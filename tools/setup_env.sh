@@ -30,6 +30,22 @@ if [ ${#missing[@]} -gt 0 ]; then
   fi
 fi
 
+# 2b. A C++ compiler for the training rasteriser's compiled kernel (built once on first use
+#     into ~/.cache/ooi_seg_ros/kernels). Optional: without one, training falls back to the
+#     ~10x slower pure-torch path and logs it, so this only warns when it cannot install one.
+if ! command -v g++ >/dev/null && ! command -v c++ >/dev/null && ! command -v clang++ >/dev/null
+then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "setup: installing g++ for the compiled training kernel"
+    apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq g++ >/dev/null \
+      || echo "setup: warning: g++ could not be installed; training uses the slower torch path" >&2
+  else
+    echo "setup: warning: no C++ compiler; training will use the ~10x slower torch path." \
+         "Install one with: sudo apt-get install -y g++" >&2
+  fi
+fi
+
 # 3. ROS 2: a sourced Jazzy installation wins over the PyPI wheels.
 use_system_ros=0
 if [ "${ROS_DISTRO:-}" = "jazzy" ] && "$PY" -c 'import rclpy' 2>/dev/null; then
