@@ -8,6 +8,20 @@ and on the ``~/segment`` service (std_srvs/Trigger), in a worker thread. Publish
 ``ooi/mask`` (mono8, one per keyframe, stamp = the keyframe image's stamp; all keyframes are
 re-published whenever the mesh changes), plus ``diagnostics``.
 
+Latency. A whole run costs tens of seconds over many keyframes, most of it in the per-view
+masks (refinement, hull carve), so results are published in three tiers:
+
+- ``ooi/points`` as soon as a run's point stages are done (the pipeline's ``on_cloud``), before
+  its mesh and masks; and between runs, whenever a new SfM cloud arrives, from a cheap
+  *cloud-only* run of the point stages alone (``cloud_runs``; at most ``cloud_max_duty`` of the
+  wall time). The cloud's stamp is the SfM cloud's (its newest keyframe).
+- A *provisional* mask for every keyframe no run has covered yet, rendered from the current
+  OOI cloud with the pipeline's own mask renderer (``seg.masks.render_masks``: the splatted or
+  ray-cast silhouette, without the per-view refinement and hull carve), published with the
+  keyframe's stamp as soon as the keyframe is complete (``provisional_masks``). Diagnostics
+  say which masks are provisional (``masks_provisional``, ``provisional_mask_stamps``).
+- The *final* masks of every keyframe of a full run, which replace the provisional ones.
+
 Memory is bounded in bytes: keyframe images are kept downscaled by an integer factor derived
 from their size (``image_downscale``/``image_max_pixels``) within ``image_budget_mb``; beyond
 it the most redundant keyframe (camera closest to another kept one) is evicted, counted and
@@ -32,7 +46,8 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
 from .. import msgconv
-from ..core.types import Capture, View
+from ..core.types import Capture, InputError, TriMesh, View
+from ..seg.masks import render_masks
 from ..seg.pipeline import SegmentationConfig, make_config, segment
 from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle,
                      auto_image_budget_bytes, guarded, latched_qos, reliable_qos, run_node,
@@ -78,6 +93,17 @@ class SegNodeConfig:
                                      "the subscribers' acknowledgements"})
     mask_stride: int = dataclasses.field(
         default=1, metadata={"doc": "publish masks for every k-th keyframe (1 = all)"})
+    provisional_masks: bool = dataclasses.field(
+        default=True, metadata={"doc": "publish a provisional mask for each keyframe no run "
+                                       "has covered yet, rendered from the current OOI cloud "
+                                       "(no refinement); a run's final mask replaces it"})
+    cloud_runs: bool = dataclasses.field(
+        default=True, metadata={"doc": "between full runs, run the point stages alone on "
+                                       "each new SfM cloud and publish ooi/points from them"})
+    cloud_max_duty: float = dataclasses.field(
+        default=0.5, metadata={"doc": "share of the wall time cloud-only runs may take: one "
+                                      "of t seconds starts the next no sooner than t/duty "
+                                      "after its own start"})
 
 
 SPECS = {
@@ -87,6 +113,9 @@ SPECS = {
     "min_keyframes": ParamSpec("keyframes before the first run", 2, 100000),
     "max_keyframes": ParamSpec("keyframes kept in memory", 2, 1000000, read_only=True),
     "mask_stride": ParamSpec("publish masks for every k-th keyframe", 1, 1000),
+    "provisional_masks": ParamSpec("provisional masks for keyframes no run covered yet"),
+    "cloud_runs": ParamSpec("point stages alone on each new SfM cloud between full runs"),
+    "cloud_max_duty": ParamSpec("share of the wall time cloud-only runs may take", 0.01, 1.0),
     "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
                                  read_only=True),
     "image_downscale": ParamSpec("integer downscale of kept images (0 = auto)", 0, 64,
@@ -104,8 +133,28 @@ SPECS = {
 }
 
 
+class _PointStagesDone(Exception):
+    """Raised from ``segment``'s ``on_cloud`` to end a cloud-only run after the point stages."""
+
+
+@dataclasses.dataclass
+class _OoiCloud:
+    """The OOI cloud masks are rendered from, and what it came from."""
+
+    xyz: np.ndarray  # [N, 3] float64, map frame
+    cloud_seq: int  # sequence number of the SfM cloud message it was segmented from
+    stamp_ns: int  # that SfM cloud's stamp (its newest keyframe)
+    source: str  # "run N" (point stages of full run N) or "cloud-only"
+
+
 class SegmentationNode(Node):
-    """Keeps the keyframes and the latest cloud, segments on demand or every N keyframes."""
+    """Keeps the keyframes and the latest cloud, segments on demand or every N keyframes.
+
+    Two worker threads: the full run (``_run``: point stages, mesh, masks, refinement) and the
+    fast path (``_fast_loop``: provisional masks of new keyframes, cloud-only runs), so that a
+    keyframe arriving during a long run still gets a mask and the OOI cloud follows the SfM
+    cloud within the point stages' cost.
+    """
 
     def __init__(self, **kwargs) -> None:
         super().__init__("segmentation_node", **kwargs)
@@ -126,11 +175,23 @@ class SegmentationNode(Node):
         self.keyframes = self.assembler.keyframes  # {stamp_ns: View}, capture order
         self._points_msg: Optional[PointCloud2] = None
         self._obs_msg: Optional[PointCloud2] = None
+        self._points_seq = 0  # SfM cloud messages received
         self._new_since_run = 0
         self._busy = threading.Lock()
         self.runs = 0
         self.last_result = None
         self.last_error: Optional[str] = None
+        # fast path state (under self._lock)
+        self._ooi: Optional[_OoiCloud] = None  # newest OOI cloud published
+        self._mesh = None  # mesh of the last full run (mask renderer for masks.mode "mesh")
+        self._final: set[int] = set()  # keyframes whose latest mask is a full run's
+        self._provisional: dict[int, int] = {}  # keyframe -> SfM cloud stamp of its mask
+        self._cloud_claimed = 0  # newest SfM cloud seq a run has taken up (full or cloud-only)
+        self._cloud_next_t = 0.0  # monotonic time before which no cloud-only run starts
+        self._fast_lock = threading.Lock()  # one fast step at a time
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self.cloud_runs = 0
 
         rq = reliable_qos(depth=self.cfg.qos_depth)
         self.create_subscription(Image, "keyframe/image", self.on_kf_image, rq)
@@ -142,10 +203,14 @@ class SegmentationNode(Node):
         self.pub_mesh = self.create_publisher(Marker, "ooi/mesh", latched_qos())
         self.pub_mask = self.create_publisher(Image, "ooi/mask",
                                               reliable_qos(depth=self.cfg.mask_qos_depth))
+        self._mask_pub_lock = threading.Lock()  # masks come from two threads
         self.create_service(Trigger, "~/segment", self.on_segment_srv)
         self._last_input = time.monotonic()
         self.last_run_newest_ns: Optional[int] = None  # newest keyframe of the last run
         self.create_timer(0.5, self._on_idle_timer)
+        self._fast = threading.Thread(target=self._fast_loop, daemon=True)
+        self._fast.start()
+        self.diag.set("masks_provisional", 0)
         self.diag.set_state("waiting for keyframes and the SfM cloud")
 
     # ---- inputs -------------------------------------------------------------------------
@@ -153,6 +218,7 @@ class SegmentationNode(Node):
         if self.assembler.add(stamp_ns, key, value):
             self._new_since_run += 1
             self._last_input = time.monotonic()
+            self._wake.set()  # a provisional mask for it
         self._maybe_run()
 
     @guarded("dropped_keyframe_image")
@@ -171,8 +237,11 @@ class SegmentationNode(Node):
 
     @guarded("dropped_cloud")
     def on_points(self, msg: PointCloud2) -> None:
-        self._points_msg = msg
+        with self._lock:
+            self._points_msg = msg
+            self._points_seq += 1
         self._last_input = time.monotonic()
+        self._wake.set()  # a cloud-only run for it
         self._maybe_run()
 
     @guarded("dropped_cloud")
@@ -203,31 +272,67 @@ class SegmentationNode(Node):
         threading.Thread(target=self._run, daemon=True).start()
         return True
 
+    def _inputs(self) -> Optional[tuple]:
+        """(views, {stamp: (full camera, factor)}, SfmCloud, cloud seq, cloud stamp) of now.
+
+        The cloud's observations come in source pixels; they are scaled to the kept
+        (downscaled) views. None when the SfM cloud or two keyframes are missing.
+        """
+        with self.assembler.lock:
+            views = list(self.assembler.keyframes.values())
+            full = {v.stamp_ns: (self.assembler.full_cameras[v.stamp_ns],
+                                 self.assembler.factors[v.stamp_ns]) for v in views}
+        with self._lock:
+            points, seq = self._points_msg, self._points_seq
+        if points is None or len(views) < 2:
+            return None
+        cloud = msgconv.pointcloud2_to_sfm_cloud(points, self._obs_msg, views)
+        if len(cloud.obs_xy) and any(f > 1 for _c, f in full.values()):
+            f = np.array([full[v.stamp_ns][1] for v in views], np.float64)
+            cloud.obs_xy = ((cloud.obs_xy + 0.5) / f[cloud.obs_view, None]
+                            - 0.5).astype(np.float32)
+            cloud.error = np.asarray(cloud.error) / float(np.median(f))
+        return views, full, cloud, seq, msgconv.stamp_to_ns(points.header.stamp)
+
+    def _publish_cloud(self, xyz: np.ndarray, rgb: np.ndarray, seq: int, stamp_ns: int,
+                       source: str) -> bool:
+        """Publishes ``ooi/points`` unless a newer SfM cloud's OOI went out already."""
+        with self._lock:
+            if self._ooi is not None and self._ooi.cloud_seq > seq:
+                return False
+            self._ooi = _OoiCloud(np.asarray(xyz, np.float64), seq, stamp_ns, source)
+        self.pub_points.publish(msgconv.xyzrgb_to_pointcloud2(
+            xyz, rgb, msgconv.ns_to_stamp(stamp_ns), self.cfg.frame_id))
+        self.diag.count("ooi_cloud_updates")
+        self.diag.set("ooi_cloud", f"{len(xyz)} points from the SfM cloud of {stamp_ns} "
+                                   f"({source})")
+        self._wake.set()  # keyframes still without a mask can get one now
+        return True
+
     def _run(self) -> None:
         try:
             t0 = time.monotonic()
-            with self.assembler.lock:
-                views = list(self.assembler.keyframes.values())
-                full = {v.stamp_ns: (self.assembler.full_cameras[v.stamp_ns],
-                                     self.assembler.factors[v.stamp_ns]) for v in views}
-            if self._points_msg is None or len(views) < 2:
+            got = self._inputs()
+            if got is None:
                 self.throttle.warn("segnodata", "segment: need the SfM cloud and >= 2 keyframes")
                 return
-            cloud = msgconv.pointcloud2_to_sfm_cloud(self._points_msg, self._obs_msg, views)
-            if len(cloud.obs_xy) and any(f > 1 for _c, f in full.values()):
-                # observations come in source pixels; the kept views are downscaled
-                f = np.array([full[v.stamp_ns][1] for v in views], np.float64)
-                cloud.obs_xy = ((cloud.obs_xy + 0.5) / f[cloud.obs_view, None]
-                                - 0.5).astype(np.float32)
-                cloud.error = np.asarray(cloud.error) / float(np.median(f))
+            views, full, cloud, seq, cloud_stamp = got
+            with self._lock:
+                self._cloud_claimed = max(self._cloud_claimed, seq)
             capture = Capture(views=views, source="ros")
+            run_no = self.runs + 1
             self.diag.set_state(f"segmenting {len(cloud)} points over {len(views)} keyframes")
-            result = segment(capture, cloud, self.seg_cfg)
+
+            def on_cloud(ooi) -> None:
+                self.diag.timing("segment_cloud", time.monotonic() - t0)
+                self._publish_cloud(ooi.xyz, ooi.rgb, seq, cloud_stamp, f"run {run_no}")
+
+            result = segment(capture, cloud, self.seg_cfg, on_cloud=on_cloud)
             self.last_result = result
             self.runs += 1
             self.last_run_newest_ns = max(v.stamp_ns for v in views)
             self.diag.timing("segment", time.monotonic() - t0)
-            self._publish(result, views, full)
+            self._publish(result, views, full, cloud_stamp)
             for w in getattr(result, "warnings", []) or []:
                 self.throttle.warn("segwarn:" + w[:40], f"segmentation: {w}")
             self.diag.set_state(f"run {self.runs}: {len(result.ooi_cloud)} OOI points, "
@@ -239,13 +344,36 @@ class SegmentationNode(Node):
         finally:
             self._busy.release()
 
-    def _publish(self, result, views: list[View], full: dict) -> None:
-        stamp = msgconv.ns_to_stamp(views[-1].stamp_ns)
-        oc = result.ooi_cloud
-        self.pub_points.publish(msgconv.xyzrgb_to_pointcloud2(oc.xyz, oc.rgb, stamp,
-                                                              self.cfg.frame_id))
+    def _publish_mask(self, mask: np.ndarray, stamp_ns: int, full: tuple,
+                      provisional_from: Optional[int] = None) -> bool:
+        """Publishes one keyframe's mask at its own size and records whether it is final.
+
+        ``provisional_from`` (the SfM cloud stamp it was rendered from) marks a provisional
+        mask; it is dropped when the keyframe has a final mask already or was evicted. The
+        check and the publication happen under one lock, so a provisional mask never goes out
+        after the final one of the same keyframe.
+        """
+        cam, f = full
+        mask = upscale_mask(np.asarray(mask, bool), f, cam.width, cam.height)
+        msg = msgconv.mask_to_image(mask, msgconv.ns_to_stamp(stamp_ns), "camera_optical")
+        with self._mask_pub_lock:
+            with self._lock:
+                if provisional_from is None:
+                    self._provisional.pop(stamp_ns, None)
+                    self._final.add(stamp_ns)
+                elif stamp_ns in self._final or stamp_ns not in self.keyframes:
+                    return False  # a run covered it meanwhile, or it was evicted
+                else:
+                    self._provisional[stamp_ns] = provisional_from
+            self.pub_mask.publish(msg)
+        return True
+
+    def _publish(self, result, views: list[View], full: dict, cloud_stamp: int) -> None:
+        stamp = msgconv.ns_to_stamp(cloud_stamp)
         if result.mesh is not None and not result.mesh.is_empty:
             self.pub_mesh.publish(msgconv.mesh_to_marker(result.mesh, stamp, self.cfg.frame_id))
+        with self._lock:
+            self._mesh = result.mesh
         batch = 0
         for i, v in enumerate(views):
             if i % self.cfg.mask_stride:
@@ -262,12 +390,133 @@ class SegmentationNode(Node):
                     self.throttle.warn("maskack", "a mask subscriber did not acknowledge "
                                                   "within 10 s; it may miss masks")
                 batch = 0
-            cam, f = full[v.stamp_ns]
-            mask = upscale_mask(np.asarray(mask, bool), f, cam.width, cam.height)
-            self.pub_mask.publish(msgconv.mask_to_image(mask, msgconv.ns_to_stamp(v.stamp_ns),
-                                                        "camera_optical"))
+            self._publish_mask(mask, v.stamp_ns, full[v.stamp_ns])
             batch += 1
             self.diag.count("masks_published")
+        self._report_provisional()
+
+    # ---- fast path: provisional masks and cloud-only runs -----------------------------------
+    def _fast_loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(timeout=0.5)
+            self._wake.clear()
+            if self._stop.is_set():
+                break
+            try:
+                self.fast_step()
+            except Exception as exc:  # noqa: BLE001 — the worker keeps running
+                self.diag.count("error_fast_path")
+                self.last_error = traceback.format_exc()
+                self.throttle.warn("fastfail", f"provisional mask / cloud-only run failed: "
+                                               f"{type(exc).__name__}: {exc}")
+
+    def fast_step(self) -> None:
+        """Provisional masks for keyframes without one, then a cloud-only run if one is due.
+
+        Called by the fast-path thread whenever a keyframe or an SfM cloud arrives (and every
+        0.5 s); tests call it directly.
+        """
+        with self._fast_lock:
+            self._provisional_step()
+            if self._cloud_step():
+                self._provisional_step()
+
+    def _provisional_step(self) -> int:
+        """Renders and publishes a mask for every kept keyframe that has none; newest first."""
+        if not self.cfg.provisional_masks:
+            return 0
+        with self._lock:
+            ooi, mesh = self._ooi, self._mesh
+        if ooi is None or len(ooi.xyz) == 0:
+            return 0
+        with self.assembler.lock:
+            todo = [(v, (self.assembler.full_cameras[s], self.assembler.factors[s]))
+                    for s, v in reversed(self.assembler.keyframes.items())]
+        with self._lock:
+            todo = [(v, f) for v, f in todo
+                    if v.stamp_ns not in self._final and v.stamp_ns not in self._provisional]
+        if not todo:
+            return 0
+        mcfg = dataclasses.replace(self.seg_cfg.masks, hull_consistency=False)
+        if mcfg.mode == "mesh" and (mesh is None or mesh.is_empty):
+            mcfg.mode = "points"  # as the pipeline does without a mesh
+        if mesh is None:
+            mesh = TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32))
+        for v, full in todo:
+            t0 = time.monotonic()
+            masks, _p = render_masks([v], mcfg, mesh, ooi.xyz)
+            if self._publish_mask(masks[v.key], v.stamp_ns, full, provisional_from=ooi.stamp_ns):
+                self.diag.count("masks_provisional_published")
+                self.diag.timing("provisional_mask", time.monotonic() - t0)
+        self._report_provisional()
+        return len(todo)
+
+    def _cloud_step(self) -> bool:
+        """A cloud-only run on the newest SfM cloud if no run took it up and one is due."""
+        if not self.cfg.cloud_runs or time.monotonic() < self._cloud_next_t:
+            return False
+        with self._lock:
+            due = self._points_seq > self._cloud_claimed
+        if not due or len(self.keyframes) < self.cfg.min_keyframes:
+            return False
+        t0 = time.monotonic()
+        got = self._inputs()
+        if got is None:
+            return False
+        views, _full, cloud, seq, cloud_stamp = got
+        with self._lock:
+            if seq <= self._cloud_claimed:
+                return False
+            self._cloud_claimed = seq
+        published = []
+
+        def on_cloud(ooi) -> None:
+            published.append(
+                self._publish_cloud(ooi.xyz, ooi.rgb, seq, cloud_stamp, "cloud-only"))
+            raise _PointStagesDone
+
+        try:
+            segment(Capture(views=views, source="ros"), cloud, self.seg_cfg, on_cloud=on_cloud)
+        except _PointStagesDone:
+            pass
+        except InputError as exc:  # e.g. too few points yet: the full run will say so too
+            self.diag.count("cloud_runs_failed")
+            self.throttle.warn("cloudrun", f"cloud-only run: {exc}")
+        dt = time.monotonic() - t0
+        self._cloud_next_t = t0 + dt / self.cfg.cloud_max_duty
+        self.cloud_runs += 1
+        self.diag.count("cloud_runs")
+        self.diag.timing("cloud_run", dt)
+        return bool(published and published[0])
+
+    def _report_provisional(self) -> None:
+        with self.assembler.lock:
+            kept = set(self.assembler.keyframes)
+        with self._lock:
+            for s in [s for s in self._provisional if s not in kept]:
+                del self._provisional[s]  # evicted keyframes
+            self._final &= kept
+            prov = sorted(self._provisional)
+        self.diag.set("masks_provisional", len(prov))
+        shown = ",".join(str(s) for s in prov[-10:])
+        self.diag.set("provisional_mask_stamps",
+                      (f"+{len(prov) - 10} older," if len(prov) > 10 else "") + shown)
+
+    def provisional_stamps(self) -> list[int]:
+        """Keyframes whose latest published mask is provisional (no run covered them yet)."""
+        with self._lock:
+            return sorted(s for s in self._provisional if s in self.keyframes)
+
+    def close(self) -> None:
+        """Stops the fast-path thread (a running full segmentation is a daemon thread)."""
+        self._stop.set()
+        self._wake.set()
+        if self._fast.is_alive() and self._fast is not threading.current_thread():
+            self._fast.join(timeout=10.0)
+
+    def destroy_node(self) -> None:
+        self.close()
+        super().destroy_node()
 
     def on_segment_srv(self, request, response):
         if self._points_msg is None or len(self.keyframes) < 2:
