@@ -536,7 +536,7 @@ class BagReader:
                 try:
                     for _sch, ch, m in reader.iter_messages(
                             topics=list(want) if want is not None else None,
-                            start_time=start_ns, end_time=end_ns, log_time_order=True):
+                            starting_at=start_ns, ending_before=end_ns, log_time_order=True):
                         yield self._bag_message(idx, ch, m)
                 except Exception as exc:  # noqa: BLE001 — a chunk damaged after the summary
                     raise InputError(f"{idx.path} is damaged ({type(exc).__name__}: {exc}); "
