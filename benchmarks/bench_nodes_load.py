@@ -6,10 +6,13 @@ rendered along the simulated orbit and each is held (same image, same pose) unti
 like a drone that hovers between waypoints, the keyframe selector sees enough motion only when
 the view changes. Reported: frames published / received / dropped (by reason), keyframes
 selected and processed, images decoded (only keyframe candidates should be), SfM seconds per
-keyframe, latency from the last keyframe's image to the OOI cloud and to its mask, keyframe
-evictions and the bytes of kept keyframe images, and resident memory sampled every second
-(bounded queues and a byte budget: it must level off). ``--budget-mb`` sets the segmentation
-node's ``image_budget_mb`` (default: the node's own) to watch eviction at work.
+keyframe, latencies from a keyframe's image to (a) the OOI cloud segmented from the SfM cloud
+that includes it, (b) its first mask (provisional while no full run covered it) and (c) its
+final mask (the full run that covers it) -- for the last keyframe of the flight and as median
+/ max over all keyframes -- keyframe evictions and the bytes of kept keyframe images, and
+resident memory sampled every second (bounded queues and a byte budget: it must level off).
+``--budget-mb`` sets the segmentation node's ``image_budget_mb`` (default: the node's own) to
+watch eviction at work.
 
 Side by side, in the same process: the same stream into a bare subscriber that only counts
 (what the transport itself delivers), as the baseline.
@@ -26,6 +29,7 @@ import resource
 import threading
 import time
 
+import numpy as np
 import psutil
 import rclpy
 from geometry_msgs.msg import PoseStamped
@@ -73,7 +77,8 @@ def stream(capture, fps, duration, pubs, stats, stop):
         stats.setdefault("pub_time", {})[base_ns + int(i * 1e9 / fps)] = time.monotonic()
 
 
-def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -> dict:
+def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
+             fast_path: bool = True) -> dict:
     ctx = Context()
     rclpy.init(context=ctx)
     ns = "/load_nodes" if with_nodes else "/load_base"
@@ -82,19 +87,44 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -
             feeder.create_publisher(PoseStamped, "pose", sensor_qos()),
             feeder.create_publisher(Image, "image", sensor_qos()))
     nodes = [feeder]
-    got = {"images": 0, "ooi": [], "mask": {}}
+    got = {"images": 0, "ooi": [], "mask": {}, "sfm": {}}  # mask: stamp -> [first, last, n]
     if with_nodes:
         sfm = SfmNode(context=ctx, namespace=ns)
         seg = SegmentationNode(context=ctx, namespace=ns, parameter_overrides=[
             Parameter("every_n_keyframes", value=10),
-            Parameter("image_budget_mb", value=float(budget_mb))])
+            Parameter("image_budget_mb", value=float(budget_mb)),
+            Parameter("provisional_masks", value=fast_path),
+            Parameter("cloud_runs", value=fast_path)])
         nodes += [sfm, seg]
         feeder.create_subscription(PointCloud2, "ooi/points",
                                    lambda m: got["ooi"].append((time.monotonic(), m)),
                                    latched_qos())
-        feeder.create_subscription(  # the time of the latest mask of each keyframe
-            Image, "ooi/mask", lambda m: got["mask"].__setitem__(
-                msgconv.stamp_to_ns(m.header.stamp), time.monotonic()), reliable_qos(100))
+
+        feeder.create_subscription(  # first arrival of the SfM cloud of each newest keyframe
+            PointCloud2, "sfm/points", lambda m: got["sfm"].setdefault(
+                msgconv.stamp_to_ns(m.header.stamp), time.monotonic()), latched_qos())
+
+        def on_mask(m):  # arrival times of each keyframe's masks
+            got["mask"].setdefault(msgconv.stamp_to_ns(m.header.stamp), []).append(
+                time.monotonic())
+
+        feeder.create_subscription(Image, "ooi/mask", on_mask, reliable_qos(100))
+        # which of a keyframe's masks were provisional, in publication order (one publisher,
+        # reliable: the k-th mask received for a stamp is the k-th published)
+        got["mask_provisional"] = {}
+        tl = threading.local()
+        node_publish_mask, wire_publish = seg._publish_mask, seg.pub_mask.publish
+
+        def publish_mask(mask, stamp_ns, full, provisional_from=None):
+            tl.provisional = provisional_from is not None
+            return node_publish_mask(mask, stamp_ns, full, provisional_from)
+
+        def publish(msg):
+            got["mask_provisional"].setdefault(msgconv.stamp_to_ns(msg.header.stamp), []).append(
+                getattr(tl, "provisional", False))
+            wire_publish(msg)
+
+        seg._publish_mask, seg.pub_mask.publish = publish_mask, publish
     else:
         feeder.create_subscription(Image, "image",
                                    lambda m: got.__setitem__("images", got["images"] + 1),
@@ -137,8 +167,63 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -
                                                or seg._busy.locked()):
             time.sleep(0.2)
         time.sleep(2.0)  # the masks of the last run
-        t_ooi = got["ooi"][-1][0] if got["ooi"] else None
-        t_mask = got["mask"].get(last_kf)
+        pub = stats["pub_time"]
+        sfm_last = msgconv.stamp_to_ns(seg._points_msg.header.stamp) if seg._points_msg \
+            else None
+        ooi = [(t, msgconv.stamp_to_ns(m.header.stamp)) for t, m in got["ooi"]]
+        kf_stamps = sorted(k for k in got["mask"] if k in pub)
+
+        def cloud_latency(k):  # first OOI cloud from an SfM cloud that includes keyframe k
+            ts = [t for t, st in ooi if st >= k]
+            return min(ts) - pub[k] if ts else None
+
+        def sfm_latency(k):  # first SfM cloud that includes keyframe k
+            ts = [t for st, t in got["sfm"].items() if st >= k]
+            return min(ts) - pub[k] if ts else None
+
+        def quant(xs):
+            xs = [x for x in xs if x is not None]
+            return (round(float(np.median(xs)), 1), round(float(np.max(xs)), 1)) if xs else None
+
+        def first_mask(k, provisional):  # arrival of k's first (non-)provisional mask
+            kinds = got["mask_provisional"].get(k, [])
+            times = got["mask"].get(k, [])
+            return next((t for t, p in zip(times, kinds) if p == provisional), None)
+
+        def lat(k, provisional):
+            t = first_mask(k, provisional) if provisional is not None else \
+                (got["mask"][k][0] if got["mask"].get(k) else None)
+            return t - pub[k] if t is not None and k in pub else None
+
+        def r1(x):
+            return round(x, 1) if x is not None else None
+
+        final_runs_t = seg.diag.timings.get("segment")
+        t_ooi = next((t for t, st in ooi if st == sfm_last), None)
+        segc = seg.diag.counters
+        out.update({
+            "ooi_clouds_received": len(ooi),
+            "latency_last_keyframe_to_ooi_s": round(t_ooi - pub[sfm_last], 1)
+            if t_ooi and sfm_last in pub else None,
+            "ooi_cloud_of_last_keyframe": sfm_last == last_kf,
+            "latency_last_keyframe_to_first_mask_s": r1(lat(last_kf, None)),
+            "last_keyframe_first_mask_provisional": bool(
+                got["mask_provisional"].get(last_kf, [False])[0]),
+            "latency_last_keyframe_to_final_mask_s": r1(lat(last_kf, False)),
+            "masks_of_last_keyframe": len(got["mask"].get(last_kf, [])),
+            "latency_last_keyframe_to_sfm_cloud_s": round(got["sfm"][sfm_last] - pub[sfm_last], 1)
+            if sfm_last in got["sfm"] and sfm_last in pub else None,
+            "latency_sfm_cloud_median_max_s": quant([sfm_latency(k) for k in kf_stamps]),
+            "latency_cloud_median_max_s": quant([cloud_latency(k) for k in kf_stamps]),
+            "latency_first_mask_median_max_s": quant([lat(k, None) for k in kf_stamps]),
+            "latency_final_mask_median_max_s": quant([lat(k, False) for k in kf_stamps]),
+            "full_runs": seg.runs, "last_full_run_s": round(final_runs_t or 0.0, 1),
+            "cloud_only_runs": seg.cloud_runs,
+            "cloud_only_run_s_median": round(seg.diag.timings.get("cloud_run_median", 0.0), 1),
+            "masks_provisional_published": segc.get("masks_provisional_published", 0),
+            "masks_final_published": segc.get("masks_published", 0),
+            "provisional_mask_s": round(seg.diag.timings.get("provisional_mask", 0.0), 2),
+        })
         c = sfm.diag.counters
         sc = seg.diag.counters
         out.update({
@@ -155,10 +240,6 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -
             "ooi_points": len(msgconv.pointcloud2_to_xyzrgb(got["ooi"][-1][1])[0])
             if got["ooi"] else 0,
             "sfm_backlog_after_stream_s": round(t_done_sfm - (t0 + duration), 1),
-            "latency_last_keyframe_to_ooi_s": round(t_ooi - stats["pub_time"][last_kf], 1)
-            if t_ooi and last_kf in stats["pub_time"] else None,
-            "latency_last_keyframe_to_mask_s": round(t_mask - stats["pub_time"][last_kf], 1)
-            if t_mask and last_kf in stats["pub_time"] else None,
             "images_decoded": c.get("images_decoded", 0),
             "sfm_downscale": sfm.sfm_factor,
             "keyframe_s_median": round(sfm.diag.timings.get("keyframe_median", 0.0), 2),
@@ -171,6 +252,7 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0) -
             "masks_received": len(got["mask"]),
         })
         sfm.close()
+        seg.close()
     else:
         out["received_by_subscriber"] = got["images"]
     ex.shutdown(timeout_sec=5)
@@ -259,6 +341,9 @@ def main() -> None:
                     help="pickle file for the rendered views (rendered and written if missing)")
     ap.add_argument("--budget-mb", type=float, default=0.0,
                     help="segmentation node image_budget_mb (0 = its default)")
+    ap.add_argument("--no-fast-path", action="store_true",
+                    help="segmentation node without provisional masks and cloud-only runs "
+                         "(OOI cloud and masks only from full runs), for comparison")
     args = ap.parse_args()
     if not args.default_malloc:
         limit_heap_growth()  # as the nodes' main() does (run_node)
@@ -287,19 +372,31 @@ def main() -> None:
         return
     base = run_case(cap, args.fps, args.baseline_duration, with_nodes=False)
     print(f"baseline (bare subscriber, {args.baseline_duration:.0f} s): {base}", flush=True)
-    res = run_case(cap, args.fps, args.duration, with_nodes=True, budget_mb=args.budget_mb)
+    res = run_case(cap, args.fps, args.duration, with_nodes=True, budget_mb=args.budget_mb,
+                   fast_path=not args.no_fast_path)
     print(f"nodes (sfm_node + segmentation_node, {args.duration:.0f} s): {res}", flush=True)
     print("\n| case | s | published | received | decoded | dropped | keyframes (processed) | "
-          "SfM s/keyframe | kf->OOI cloud / mask s | RSS MB first/mid/last |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "SfM s/keyframe | last kf -> SfM cloud / OOI cloud / first mask / final mask s | same, "
+          "median (max) over keyframes | RSS MB first/mid/last |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     print(f"| bare subscriber | {args.baseline_duration:.0f} | {base['published']} | "
-          f"{base['received_by_subscriber']} | - | - | - | - | - | {base['rss_mb_first']:.0f} / "
-          f"{base['rss_mb_mid']:.0f} / {base['rss_mb_last']:.0f} |")
+          f"{base['received_by_subscriber']} | - | - | - | - | - | - | "
+          f"{base['rss_mb_first']:.0f} / {base['rss_mb_mid']:.0f} / {base['rss_mb_last']:.0f} |")
+
+    def mm(x):
+        return f"{x[0]} ({x[1]})" if x else "-"
+
     print(f"| sfm + segmentation nodes | {args.duration:.0f} | {res['published']} | "
           f"{res['received_by_sfm_node']} | {res['images_decoded']} | {res['dropped']} | "
           f"{res['keyframes']} ({res['keyframes_processed']}) | {res['keyframe_s_median']} "
-          f"(1/{res['sfm_downscale']}) | {res['latency_last_keyframe_to_ooi_s']} / "
-          f"{res['latency_last_keyframe_to_mask_s']} | {res['rss_mb_first']:.0f} / "
+          f"(1/{res['sfm_downscale']}) | {res['latency_last_keyframe_to_sfm_cloud_s']} / "
+          f"{res['latency_last_keyframe_to_ooi_s']} / "
+          f"{res['latency_last_keyframe_to_first_mask_s']} / "
+          f"{res['latency_last_keyframe_to_final_mask_s']} | "
+          f"{mm(res['latency_sfm_cloud_median_max_s'])} / "
+          f"{mm(res['latency_cloud_median_max_s'])} / "
+          f"{mm(res['latency_first_mask_median_max_s'])} / "
+          f"{mm(res['latency_final_mask_median_max_s'])} | {res['rss_mb_first']:.0f} / "
           f"{res['rss_mb_mid']:.0f} / {res['rss_mb_last']:.0f} |")
 
 

@@ -31,6 +31,7 @@ size (nearest upsampling of the mask rendered at the working size).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import threading
 import time
@@ -192,6 +193,7 @@ class SegmentationNode(Node):
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.cloud_runs = 0
+        self.cloud_run_times: collections.deque = collections.deque(maxlen=100)  # s, completed
 
         rq = reliable_qos(depth=self.cfg.qos_depth)
         self.create_subscription(Image, "keyframe/image", self.on_kf_image, rq)
@@ -478,7 +480,8 @@ class SegmentationNode(Node):
         try:
             segment(Capture(views=views, source="ros"), cloud, self.seg_cfg, on_cloud=on_cloud)
         except _PointStagesDone:
-            pass
+            self.cloud_run_times.append(time.monotonic() - t0)
+            self.diag.timing("cloud_run_median", float(np.median(self.cloud_run_times)))
         except InputError as exc:  # e.g. too few points yet: the full run will say so too
             self.diag.count("cloud_runs_failed")
             self.throttle.warn("cloudrun", f"cloud-only run: {exc}")
