@@ -140,3 +140,15 @@ def test_schedule_follows_time_budget():
     cfg = TrainConfig(iterations=100000, time_budget_s=100.0)
     assert abs(_progress(10, cfg, 50.0) - 0.5) < 1e-9
     assert _progress(10, cfg, 500.0) == 1.0
+
+
+def test_cpu_clock_budget_stops_and_reports(sim):
+    """A CPU-time budget stops training like a wall-clock one; both times are reported."""
+    masks = {v.key: v.gt_mask for v in sim.views}
+    r = train(sim, masks, sim.gt_ooi_points[::40],
+              _cfg(iterations=100000, time_budget_s=0.5, budget_clock="cpu"))
+    assert 0 < r.iterations_done < 100000
+    m = r.metrics()
+    assert m["cpu_seconds"] > 0.4 and m["seconds"] > 0
+    with pytest.raises(InputError, match="budget_clock"):
+        train(sim, masks, sim.gt_ooi_points[::40], _cfg(budget_clock="gpu"))
