@@ -1,9 +1,11 @@
 """Incremental SfM with known poses (the drone case).
 
-Each keyframe: SIFT (pycolmap) on the grey image, keypoints undistorted to normalised camera
-coordinates, pairs chosen from the poses (sequential neighbours plus the keyframes whose view
-frustums overlap most), mutual-nearest-neighbour matching with Lowe's ratio test, and geometric
-verification with the epipolar geometry the known poses imply (Sampson distance in pixels).
+Each keyframe: SIFT (pycolmap) on the grey image (its first octave upsampled only for small
+images, so the extraction cost per keyframe stays bounded as frames grow), keypoints
+undistorted to normalised camera coordinates, pairs chosen from the poses (sequential
+neighbours plus the keyframes whose view frustums overlap most), mutual-nearest-neighbour
+matching with Lowe's ratio test, and geometric verification with the epipolar geometry the
+known poses imply (Sampson distance in pixels).
 Verified matches are merged into tracks by an incremental union-find. ``cloud()`` triangulates
 only tracks that changed since the last call (multi-view DLT with the poses fixed), drops
 observations with a large reprojection error, and keeps points with enough triangulation angle
@@ -39,6 +41,13 @@ class IncrementalConfig:
 
     max_features: int = 4096  # SIFT features per keyframe
     peak_threshold: float = 0.0066  # SIFT contrast threshold (COLMAP default / octave count)
+    sift_upsample_max_pixels: int = 640 * 480  # SIFT doubles the image for its first octave
+    # (finer features; 4x the scale-space work) only while the doubled image has at most this
+    # many pixels: 320x240 keyframes are upsampled, 640x480 and larger are not, so the SIFT cost
+    # per keyframe stays bounded (<= 0 = always upsample, COLMAP's default; see BENCHMARKS)
+    peak_threshold_native: float = 0.0022  # contrast threshold used instead of peak_threshold
+    # when the first octave is not upsampled: lower, so that the native-resolution octaves
+    # give the points the upsampled octave would have (measured at 640x480, see BENCHMARKS)
     ratio: float = 0.8  # Lowe ratio test: best/second-best descriptor distance below this
     sequential_pairs: int = 3  # match with this many previous keyframes in capture order
     overlap_pairs: int = 5  # ... plus this many other keyframes with the largest view overlap
@@ -199,24 +208,35 @@ class IncrementalSfM:
         self.scene_scale = scene_scale
         self.times = Counter()
         self.counts = Counter()
-        self._sift = None
+        self._sift: dict[int, object] = {}  # SIFT extractor per first octave
         self._tri: dict[int, Optional[tuple]] = {}  # root -> triangulated point or None
         self._n_features = 0
 
     # -- features ----------------------------------------------------------------------------
-    def _extractor(self):
-        if self._sift is None:
+    def first_octave(self, width: int, height: int) -> int:
+        """SIFT's first octave for a ``width`` x ``height`` keyframe: -1 (upsampled) or 0.
+
+        The upsampled octave holds 4x the image's pixels and costs most of the extraction; it
+        is used only while it stays within ``sift_upsample_max_pixels``.
+        """
+        budget = self.config.sift_upsample_max_pixels
+        return -1 if budget <= 0 or 4 * width * height <= budget else 0
+
+    def _extractor(self, first_octave: int = -1):
+        if first_octave not in self._sift:
             import pycolmap
             opt = pycolmap.FeatureExtractionOptions()
             opt.use_gpu = False
             opt.num_threads = 1
             opt.max_image_size = 100000
             opt.sift.max_num_features = self.config.max_features
-            opt.sift.peak_threshold = self.config.peak_threshold
+            opt.sift.first_octave = first_octave
+            opt.sift.peak_threshold = (self.config.peak_threshold if first_octave < 0
+                                       else self.config.peak_threshold_native)
             with warnings.catch_warnings():  # pycolmap.Sift takes numpy images directly
                 warnings.simplefilter("ignore", DeprecationWarning)
-                self._sift = pycolmap.Sift(opt, pycolmap.Device.cpu)
-        return self._sift
+                self._sift[first_octave] = pycolmap.Sift(opt, pycolmap.Device.cpu)
+        return self._sift[first_octave]
 
     def _features(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         img = view.get_image()
@@ -228,7 +248,7 @@ class IncrementalSfM:
                              f"match camera_info {cam.width}x{cam.height}")
         grey = np.ascontiguousarray(
             (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]).astype(np.uint8))
-        kp, desc = self._extractor().extract(grey)
+        kp, desc = self._extractor(self.first_octave(cam.width, cam.height)).extract(grey)
         kp = np.asarray(kp, float).reshape(-1, 4)
         desc = np.asarray(desc, np.float32).reshape(len(kp), 128)
         if len(kp) == 0:
@@ -374,7 +394,9 @@ class IncrementalSfM:
         self.counts["keyframes"] += 1
         self.counts["verified_matches"] += n_matches
         self.counts["guided_matches"] += n_guided
-        return {"key": view.key, "features": int(len(xy)), "pairs": len(pairs),
+        return {"key": view.key, "features": int(len(xy)),
+                "sift_first_octave": self.first_octave(view.camera.width, view.camera.height),
+                "pairs": len(pairs),
                 "verified_matches": int(n_matches), "guided_matches": int(n_guided),
                 "features_s": t1 - t0, "matching_s": t2 - t1}
 
