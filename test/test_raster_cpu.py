@@ -127,3 +127,43 @@ def test_gradcheck_float64():
         inputs = tuple(t.detach().clone().requires_grad_(True)
                        for t in (m.means, m.sh_dc, m.logit_opacities, m.log_scales))
         assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-4, rtol=1e-3)
+
+
+@pytest.fixture
+def fresh_kernel_loader(monkeypatch):
+    """Forget the loaded kernel for one test (restored afterwards)."""
+    saved = (raster_kernel._lib, raster_kernel._tried, raster_kernel._why_not)
+    monkeypatch.setattr(raster_kernel, "_lib", None)
+    monkeypatch.setattr(raster_kernel, "_tried", False)
+    monkeypatch.setattr(raster_kernel, "_why_not", "")
+    yield
+    raster_kernel._lib, raster_kernel._tried, raster_kernel._why_not = saved
+
+
+def test_fallback_without_compiler_is_logged(fresh_kernel_loader, monkeypatch, tmp_path,
+                                             caplog):
+    """No usable C++ compiler: one warning saying why, and rendering runs on the torch path."""
+    monkeypatch.setenv("OOI_SEG_KERNEL_DIR", str(tmp_path))
+    monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
+    m, rc = _scene(n=50)
+    bg = torch.zeros(3)
+    with caplog.at_level("WARNING", logger=raster_kernel.__name__):
+        out = raster_cpu.render(m, rc, bg)
+        raster_cpu.render(m, rc, bg)  # logged once, not per call
+    warnings = [r for r in caplog.records if "pure-torch" in r.getMessage()]
+    assert len(warnings) == 1 and "no-such-compiler" in warnings[0].getMessage()
+    assert not raster_kernel.available() and raster_kernel.unavailable_reason()
+    ref = raster_cpu.render(m, rc, bg, kernel=False)
+    assert torch.allclose(out.image, ref.image)
+
+
+@pytest.mark.slow
+def test_kernel_builds_into_empty_cache(fresh_kernel_loader, monkeypatch, tmp_path):
+    """A fresh machine (empty cache) compiles the kernel with the system compiler."""
+    monkeypatch.setenv("OOI_SEG_KERNEL_DIR", str(tmp_path))
+    assert raster_kernel.available(), raster_kernel.unavailable_reason()
+    assert len(list(tmp_path.glob("ooi_composite_*.so"))) == 1
+    m, rc = _scene(n=50)
+    a = raster_cpu.render(m, rc, torch.zeros(3), kernel=True)
+    b = raster_cpu.render(m, rc, torch.zeros(3), kernel=False)
+    assert torch.allclose(a.image, b.image, atol=1e-5)
