@@ -60,7 +60,7 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=60)
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--columns", type=int, nargs="+", default=[4, 24, 44])
-    ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache")
+    ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2")
     ap.add_argument("--out", default="docs/seg_sim_masks.png")
     ap.add_argument("--bonsai", help="folder of an `ooi-seg segment` run on the bonsai")
     args = ap.parse_args()

@@ -34,9 +34,16 @@ VARIANTS = {
     "ours-no-roi": ("ours", {"roi": {"enabled": False}}),
     "ours-mesh-masks": ("ours", {"masks": {"mode": "mesh"}, "refine": {"enabled": False}}),
     "ours+hull": ("ours", {"masks": {"hull_consistency": True}}),
-    "ours-no-carve": ("ours", {"masks": {"hull_carve": False}}),
-    "ours-obs-seeds": ("ours", {"masks": {"hull_carve": False},
-                                "refine": {"fg_seeds": "observations"}}),
+    "ours+carve": ("ours", {"masks": {"hull_carve": True}}),
+    "ours-no-plane": ("ours", {"refine": {"plane_check": {"enabled": False}}}),
+    "ours-no-walls": ("ours", {"refine": {"plane_check": {"extra_planes": 0}}}),
+    "ours-consistent": ("ours", {"refine": {"fg_seeds": "consistent", "consistency": 0.5}}),
+    "ours-obs-seeds": ("ours", {"refine": {"fg_seeds": "observations"}}),
+    # the default before the plane check (commit a025e30): two GrabCut passes seeded by the
+    # points >= 70% of the first-pass masks hold, then the voxel-hull carve
+    "ours-prev": ("ours", {"masks": {"hull_carve": True},
+                           "refine": {"fg_seeds": "consistent", "consistency": 0.7,
+                                      "plane_check": {"enabled": False}}}),
     "ours-grow": ("ours", {"noise": {"grow_scale": 2.0}}),
 }
 
@@ -115,7 +122,8 @@ def main() -> None:
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--cloud", choices=("sfm", "proxy"), default="sfm",
                     help="sfm = the package's known-pose SfM (cached); proxy = depth proxy")
-    ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache", help="SfM cache folder")
+    ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2",
+                    help="SfM cache folder (v2: clouds of the SfM since commit 118fd9a)")
     ap.add_argument("--refresh", action="store_true", help="recompute cached SfM clouds")
     ap.add_argument("--variants", nargs="+", default=["paper", "ours"], choices=list(VARIANTS))
     ap.add_argument("--set", action="append", default=[], metavar="JSON",

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from ooi_seg_ros.core.geometry import look_at
 from ooi_seg_ros.core.types import CameraIntrinsics, SfmCloud, View
@@ -229,3 +230,49 @@ def test_point_support_and_hull_carve_remove_a_one_view_blob():
     assert p["applied"] and not carved[views[0].key][v, u]
     for vw in views[1:]:  # the consistent masks keep (almost) all of their area
         assert carved[vw.key].sum() > 0.9 * masks[vw.key].sum()
+
+
+def test_plane_check_calls_the_floor_floor_and_the_object_not():
+    """Plane-induced photo-consistency on a simulator capture with exact masks and depths:
+    textured table top around the plant is called floor, the plant (almost) never."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    from ooi_seg_ros.sim import simulate_capture
+    sim = simulate_capture("tabletop", n_views=24, width=128, height=96, seed=0)
+    views = sim.capture.views
+    plane = np.array([0.0, 0.0, 1.0, -sim.scene.support_z])
+    target = np.mean(sim.capture.gt_ooi_points, axis=0)
+    pc = PlaneConsistency(views, plane, target, PlaneCheckConfig(enabled=True, max_deg=40.0))
+    obj_hit, obj_n, floor_hit, floor_n = 0, 0, 0, 0
+    for i in range(0, 24, 4):
+        v = views[i]
+        fl = pc.floor_map(i, (0, 96, 0, 128))
+        # true floor pixels: the depth's 3D point lies on the table plane
+        dirs = undistorted_dirs(v.camera).reshape(96, 128, 3) @ v.pose.R.T
+        p = v.pose.t + dirs * sim.depths[i][..., None]
+        on_plane = np.abs(p[..., 2] - sim.scene.support_z) < 1e-3
+        near = ndimage.binary_dilation(v.gt_mask, iterations=8) & ~v.gt_mask & on_plane
+        obj_hit += (fl & v.gt_mask).sum()
+        obj_n += v.gt_mask.sum()
+        floor_hit += (fl & near).sum()
+        floor_n += near.sum()
+    print("object called floor", obj_hit / obj_n, "floor near it called floor",
+          floor_hit / floor_n)
+    assert obj_hit < 0.02 * obj_n
+    assert floor_hit > 0.25 * floor_n
+
+
+def test_background_planes_find_the_wall_not_the_object():
+    """A wall behind the object is returned; the support plane (touching the object) and no
+    plane through the object are."""
+    from ooi_seg_ros.seg.photo import background_planes
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(-4, 4, (3000, 2)), rng.normal(0, 0.005, 3000)]
+    wall = np.c_[rng.uniform(-4, 4, 1500), np.full(1500, 4.0) + rng.normal(0, 0.005, 1500),
+                 rng.uniform(0, 3, 1500)]
+    obj = _sphere(800, r=0.5, c=(0, 0, 0.5))
+    cams = np.array([v.pose.t for v in _ring_views(12, radius=3.0, height=1.5)])
+    planes = background_planes(np.vstack([floor, wall]), obj, cams, 0.02, 3, seed=0)
+    assert len(planes) == 1
+    n, d = planes[0][:3], planes[0][3]
+    assert abs(abs(n[1]) - 1) < 1e-2 and abs(abs(d) - 4.0) < 0.05
+    assert (obj @ n + d > 0).all()  # normal towards the cameras, object on their side

@@ -3,10 +3,11 @@
 ``method="paper"`` is the literal section-4 pipeline (the baseline). ``method="ours"`` (the
 default) adds the signals an orbit gives for free: the camera-framing region of interest, a
 camera-aware support-plane rule, the DBSCAN cluster the cameras look at, masks splatted from
-the OOI points (no Poisson balloon), a per-view GrabCut refinement seeded by the OOI points
-the views agree on, and a voxel visual-hull carve of the refined masks. Each stage is a
-function with a typed input and output and its own config dataclass, so stages can be swapped
-by configuration.
+the OOI points (no Poisson balloon), and a per-view GrabCut refinement seeded by the
+projections of the OOI points, in which every pixel that shows the support plane or a
+background wall (plane-induced photo-consistency with nearby views, ``photo.py``) is sure
+background. Each stage is a function with a typed input and output and its own config
+dataclass, so stages can be swapped by configuration.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from .masks import MaskConfig, hull_carve, render_masks
 from .mesh import MeshConfig, build_mesh
 from .metrics import scene_metrics
 from .noise import NoiseConfig, noise_filter
+from .photo import background_planes
 from .refine import RefineConfig, refine_masks
 from .roi import RoiConfig, frame_radius, roi_filter
 
@@ -66,8 +68,10 @@ def preset(method: str) -> dict:
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
                           "splat_scale": 0.6, "hull_consistency": False,
-                          "hull_carve": True},
-                "refine": {"enabled": True, "fg_seeds": "consistent"}}
+                          "hull_carve": False},
+                "refine": {"enabled": True, "fg_seeds": "projections",
+                           "plane_check": {"enabled": True, "over_seeds": True,
+                                           "extra_planes": 3}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 
@@ -196,15 +200,23 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         removed = np.ones(len(full), bool)
         removed[sel] = False
         fp = params.get("floor", {})
+        plane = None
         if fp.get("support_plane") is not None and "band_inliers" in fp:
             # points in the layer between the inliers' band and the floor's measured thickness
             # may be the object's foot (a pot's base, a tyre): not background seeds
-            pl = np.asarray(fp["support_plane"])
-            h = full.xyz @ pl[:3] + pl[3]
+            plane = np.asarray(fp["support_plane"])
+            h = full.xyz @ plane[:3] + plane[3]
             removed &= ~((h > fp["band_inliers"]) & (h <= fp["band"]))
+        pcfg = cfg.refine.plane_check
+        if plane is not None and pcfg.enabled and pcfg.extra_planes > 0:
+            extra = background_planes(full.xyz[removed], cloud.xyz, cam_centers,
+                                      float(fp.get("threshold", 0.0)), pcfg.extra_planes,
+                                      cfg.seed)
+            params["background_planes"] = extra.tolist()
+            plane = np.vstack([plane[None], extra])
         try:
             masks, params["refine"] = refine_masks(masks, views, cloud, full.subset(removed),
-                                                   cfg.refine)
+                                                   cfg.refine, plane, target)
         except ImportError:
             warnings.append("refine: opencv-python-headless is not installed; masks are the "
                             "unrefined point silhouettes")

@@ -11,13 +11,15 @@ changes the area beyond ``max_area_change`` is rejected and the silhouette kept 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 from scipy import ndimage
 
 from ..core.types import SfmCloud, View
 from .masks import fill_small_holes, project_distorted
+from .photo import PlaneCheckConfig, PlaneConsistency
 
 
 @dataclass
@@ -42,6 +44,8 @@ class RefineConfig:
     # start as probably-background instead of probably-object
     opening: int = 1  # iterations of the binary opening that removes specks from the result
     seed: int = 0  # seed of OpenCV's RNG (GrabCut's colour-model initialisation)
+    plane_check: PlaneCheckConfig = field(default_factory=PlaneCheckConfig)  # pixels whose
+    # colour the support plane explains (photo-consistent with nearby views) are background
 
 
 def _obs_by_view(cloud: SfmCloud, views: list[View]) -> list[np.ndarray]:
@@ -89,10 +93,17 @@ def _draw(seed: np.ndarray, xy: np.ndarray, r: int, box: tuple, scale: float) ->
 
 
 def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[np.ndarray],
-                  bg_xy: list[np.ndarray], cfg: RefineConfig) -> tuple[dict, int, int]:
-    """One GrabCut pass over every view with the given seed pixels; (masks, refined, rejected)."""
+                  bg_xy: list[np.ndarray], cfg: RefineConfig,
+                  floor: Optional[PlaneConsistency] = None, floor_cache: Optional[dict] = None
+                  ) -> tuple[dict, int, int]:
+    """One GrabCut pass over every view with the given seed pixels; (masks, refined, rejected).
+
+    ``floor`` (optional) marks the crop's pixels that show the support plane as sure
+    background; ``floor_cache`` keeps those maps between passes (keyed by view and crop).
+    """
     import cv2
     out, refined, rejected = {}, 0, 0
+    floor_cache = {} if floor_cache is None else floor_cache
     for j, v in enumerate(views):
         m = masks[v.key]
         if m.sum() < 16:
@@ -131,9 +142,27 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
             d_bg = ndimage.distance_transform_edt(~bg_seed)
             gc[crop_s & (d_bg < d_fg)] = cv2.GC_PR_BGD
         gc[bg_seed & ~fg_seed] = cv2.GC_BGD
+        fallback = m  # kept when GrabCut fails or changes the area too much
+        ref_area = crop.sum()
+        if floor is not None:
+            fkey = (j, box)
+            if fkey not in floor_cache:
+                floor_cache[fkey] = floor.floor_map(j, box)
+            fl = floor_cache[fkey]
+            # the floor pixels are known background: the silhouette without them is both the
+            # fallback and the reference of the area check
+            fallback = m.copy()
+            fallback[box[0]:box[1], box[2]:box[3]] &= ~fl
+            ref_area = (crop & ~fl).sum()
+            if scale < 1.0:
+                fl = cv2.resize(fl.astype(np.uint8), (crop_s.shape[1], crop_s.shape[0]),
+                                interpolation=cv2.INTER_NEAREST).astype(bool)
+            gc[fl & ~fg_seed] = cv2.GC_BGD
         gc[fg_seed & ~bg_seed] = cv2.GC_FGD
+        if floor is not None and floor.cfg.over_seeds:
+            gc[fl] = cv2.GC_BGD
         if not (gc == cv2.GC_FGD).any() and not (gc == cv2.GC_PR_FGD).any():
-            out[v.key] = m
+            out[v.key] = fallback
             continue
         bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
         cv2.setRNGSeed(int(cfg.seed) * 100003 + j)
@@ -142,7 +171,7 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
                         int(cfg.iterations), cv2.GC_INIT_WITH_MASK)
         except cv2.error:
             rejected += 1
-            out[v.key] = m
+            out[v.key] = fallback
             continue
         res = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
         if scale < 1.0:
@@ -151,10 +180,10 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         if cfg.opening > 0:
             res = ndimage.binary_opening(res, iterations=int(cfg.opening))
         res = fill_small_holes(res, cfg.hole_max_fraction)
-        a0, a1 = crop.sum(), res.sum()
+        a0, a1 = ref_area, res.sum()
         if abs(a1 - a0) > cfg.max_area_change * a0:
             rejected += 1
-            out[v.key] = m
+            out[v.key] = fallback
             continue
         full = np.zeros_like(m)
         full[box[0]:box[1], box[2]:box[3]] = res
@@ -179,7 +208,8 @@ def point_support(xyz: np.ndarray, masks: dict[str, np.ndarray], views: list[Vie
 
 
 def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
-                 background: SfmCloud, cfg: RefineConfig) -> tuple[dict, dict]:
+                 background: SfmCloud, cfg: RefineConfig, plane: Optional[np.ndarray] = None,
+                 target: Optional[np.ndarray] = None) -> tuple[dict, dict]:
     """GrabCut-refined masks {key: bool [H,W]} and counts of refined/rejected views.
 
     ``fg_seeds="consistent"`` runs two passes: the first seeded by the observations; every
@@ -187,24 +217,36 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     and the second pass (from the same splatted silhouettes) is seeded by the projections of
     the points scoring at least ``consistency`` -- many more seeds per view than the few
     features matched there, minus the stray points the views disagree about.
+
+    With ``cfg.plane_check.enabled`` and a support ``plane`` (n.x + d = 0; or [P, 4] planes,
+    the support plane first), the pixels that show a plane (``photo.PlaneConsistency``;
+    ``target`` = the cameras' convergence point) are sure background.
     """
     fg_obs = _obs_by_view(ooi, views)
     bg_obs = _obs_by_view(background, views)
     params: dict = {"fg_seeds": cfg.fg_seeds}
+    floor = None
+    if cfg.plane_check.enabled and plane is not None and target is not None:
+        floor = PlaneConsistency(views, np.asarray(plane, float), np.asarray(target, float),
+                                 cfg.plane_check)
+    cache: dict = {}
     if cfg.fg_seeds == "observations":
-        out, refined, rejected = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg)
+        out, refined, rejected = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg, floor, cache)
     elif cfg.fg_seeds in ("projections", "consistent"):
         xyz = ooi.xyz
         if cfg.fg_seeds == "consistent":
-            first, _, _ = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg)
+            first, _, _ = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg, floor, cache)
             support = point_support(xyz, first, views)
             xyz = xyz[support >= cfg.consistency]
             params["consistent_points"] = int(len(xyz))
         fg = [_in_frame(project_distorted(xyz, v.camera, v.pose), v) for v in views]
         init = first if cfg.fg_seeds == "consistent" and cfg.second_init == "first" else masks
-        out, refined, rejected = _grabcut_pass(init, views, fg, bg_obs, cfg)
+        out, refined, rejected = _grabcut_pass(init, views, fg, bg_obs, cfg, floor, cache)
     else:
         raise ValueError(f"refine.fg_seeds={cfg.fg_seeds!r}; use observations, projections "
                          f"or consistent")
     params.update({"refined": refined, "rejected": rejected})
+    if floor is not None:
+        params["plane_check_s"] = round(floor.seconds, 3)
+        params["planes"] = int(len(floor.planes))
     return out, params
