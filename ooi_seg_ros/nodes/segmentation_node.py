@@ -274,11 +274,12 @@ class SegmentationNode(Node):
         threading.Thread(target=self._run, daemon=True).start()
         return True
 
-    def _inputs(self) -> Optional[tuple]:
+    def _inputs(self, observations: bool = True) -> Optional[tuple]:
         """(views, {stamp: (full camera, factor)}, SfmCloud, cloud seq, cloud stamp) of now.
 
         The cloud's observations come in source pixels; they are scaled to the kept
-        (downscaled) views. None when the SfM cloud or two keyframes are missing.
+        (downscaled) views (``observations=False``: none; the point stages do not use them).
+        None when the SfM cloud or two keyframes are missing.
         """
         with self.assembler.lock:
             views = list(self.assembler.keyframes.values())
@@ -288,7 +289,8 @@ class SegmentationNode(Node):
             points, seq = self._points_msg, self._points_seq
         if points is None or len(views) < 2:
             return None
-        cloud = msgconv.pointcloud2_to_sfm_cloud(points, self._obs_msg, views)
+        cloud = msgconv.pointcloud2_to_sfm_cloud(points, self._obs_msg if observations else None,
+                                                 views)
         if len(cloud.obs_xy) and any(f > 1 for _c, f in full.values()):
             f = np.array([full[v.stamp_ns][1] for v in views], np.float64)
             cloud.obs_xy = ((cloud.obs_xy + 0.5) / f[cloud.obs_view, None]
@@ -462,7 +464,7 @@ class SegmentationNode(Node):
         if not due or len(self.keyframes) < self.cfg.min_keyframes:
             return False
         t0 = time.monotonic()
-        got = self._inputs()
+        got = self._inputs(observations=False)
         if got is None:
             return False
         views, _full, cloud, seq, cloud_stamp = got
