@@ -51,6 +51,11 @@ class PlaneCheckConfig:
     cache_views: int = 24  # images kept in memory as float
 
 
+def _grey(x: np.ndarray) -> np.ndarray:
+    """Channel mean [h, w] of an [h, w, 3] float image (faster than ``mean(axis=2)``)."""
+    return (x[..., 0] + x[..., 1] + x[..., 2]) * np.float32(1.0 / 3.0)
+
+
 class PlaneConsistency:
     """Floor maps of crops of ``views`` by plane-induced warping of nearby views.
 
@@ -93,10 +98,9 @@ class PlaneConsistency:
             self._dirs[key] = undistorted_dirs(c).reshape(c.height, c.width, 3)
         return self._dirs[key]
 
-    def warp(self, i: int, box: tuple[int, int, int, int], j: int, k: int = 0
-             ) -> tuple[np.ndarray, np.ndarray]:
-        """View ``j``'s image warped through plane ``k`` onto crop ``box`` of view ``i``:
-        (colours [h, w, 3] float32, valid [h, w] bool)."""
+    def plane_points(self, i: int, box: tuple[int, int, int, int], k: int = 0
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Where the rays of crop ``box`` of view ``i`` meet plane ``k``: ([h*w, 3], hit)."""
         y0, y1, x0, x1 = box
         v = self.views[i]
         n, d0 = self.planes[k, :3], self.planes[k, 3]
@@ -105,22 +109,29 @@ class PlaneConsistency:
         with np.errstate(divide="ignore", invalid="ignore"):
             t = -(v.pose.t @ n + d0) / den
         hit = np.isfinite(t) & (t > 0)
-        X = v.pose.t + np.where(hit, t, 0.0)[:, None] * d
+        return v.pose.t + np.where(hit, t, 0.0)[:, None] * d, hit
+
+    def sample(self, j: int, X: np.ndarray, hit: np.ndarray, shape: tuple[int, int]
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """View ``j``'s image at the projections of ``X`` (bilinear): ([*shape, 3], valid)."""
+        import cv2
         cj = self.views[j].camera
         uv, z = project_distorted(X, cj, self.views[j].pose)
         ok = hit & (z > 0) & np.isfinite(uv).all(1)
         ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cj.width - 1)
         ok &= (uv[:, 1] >= 0) & (uv[:, 1] <= cj.height - 1)
-        img = self._image(j)
-        u = np.where(ok, uv[:, 0], 0.0)
-        w = np.where(ok, uv[:, 1], 0.0)
-        u0 = np.clip(np.floor(u).astype(int), 0, cj.width - 2)
-        v0 = np.clip(np.floor(w).astype(int), 0, cj.height - 2)
-        fu, fv = (u - u0)[:, None], (w - v0)[:, None]
-        col = ((img[v0, u0] * (1 - fu) + img[v0, u0 + 1] * fu) * (1 - fv)
-               + (img[v0 + 1, u0] * (1 - fu) + img[v0 + 1, u0 + 1] * fu) * fv)
-        shape = (y1 - y0, x1 - x0)
-        return col.reshape(shape + (3,)).astype(np.float32), ok.reshape(shape)
+        mx = np.where(ok, uv[:, 0], -1.0).astype(np.float32).reshape(shape)
+        my = np.where(ok, uv[:, 1], -1.0).astype(np.float32).reshape(shape)
+        col = cv2.remap(self._image(j), mx, my, cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return col, ok.reshape(shape)
+
+    def warp(self, i: int, box: tuple[int, int, int, int], j: int, k: int = 0
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """View ``j``'s image warped through plane ``k`` onto crop ``box`` of view ``i``:
+        (colours [h, w, 3] float32, valid [h, w] bool)."""
+        X, hit = self.plane_points(i, box, k)
+        return self.sample(j, X, hit, (box[1] - box[0], box[3] - box[2]))
 
     def floor_map(self, i: int, box: tuple[int, int, int, int]) -> np.ndarray:
         """Bool [h, w] of the crop ``box`` (y0, y1, x0, x1) of view ``i``: pixels on the floor."""
@@ -133,22 +144,23 @@ class PlaneConsistency:
         def box_mean(x: np.ndarray) -> np.ndarray:
             return ndimage.uniform_filter(x, win, mode="nearest")
 
-        ga = a.mean(axis=2)
+        ga = _grey(a)
         ma = box_mean(ga)
         va = np.maximum(box_mean(ga * ga) - ma * ma, 0.0)
         textured = va > cfg.min_std ** 2
         fl = np.zeros(ga.shape, bool)
         for k in range(len(self.planes)):
+            X, hit = self.plane_points(i, box, k)
             votes = np.zeros(ga.shape, np.int32)
             for j in self.nbrs[i]:
-                b, ok = self.warp(i, box, j, k)
+                b, ok = self.sample(j, X, hit, ga.shape)
                 if not ok.any():
                     continue
-                gb = b.mean(axis=2)
+                gb = _grey(b)
                 mb = box_mean(gb)
                 vb = np.maximum(box_mean(gb * gb) - mb * mb, 0.0)
                 ncc = (box_mean(ga * gb) - ma * mb) / np.sqrt(np.maximum(va * vb, 1e-6))
-                diff = box_mean(np.abs(a - b).mean(axis=2))
+                diff = box_mean(_grey(np.abs(a - b)))
                 whole = box_mean(ok.astype(np.float32)) > 0.999  # patch all inside view j
                 votes += whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
             fl |= votes >= max(1, cfg.rank)
