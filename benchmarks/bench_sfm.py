@@ -10,8 +10,10 @@ fraction of the object size (the simulator's ``scale``). ``inc`` is the cloud th
 (``IncrementalSfM.cloud()``: 3+-view points plus the well-conditioned 2-view points),
 ``inc_all`` every triangulated point, ``inc_t3`` the 3+-view points only. The last line per
 case checks the issue's bar: ``inc`` keeps >= 90% of ``batch``'s points at an equal or smaller
-median distance. ``--also-upsampled`` adds ``inc_up``, the incremental path with SIFT's first
-octave always upsampled (the default before ``sift_upsample_max_pixels``).
+median distance. ``--native-octave PIXELS`` adds ``inc_nat``, the incremental path with
+``sift_upsample_max_pixels=PIXELS`` (SIFT's first octave upsampled only for frames whose doubled
+size fits; with 307200 = 640x480, 640x480 frames are not upsampled) and ``--native-peak`` as its
+SIFT contrast threshold.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_sfm.py \
         --cases aircraft:60:320x240 tabletop:60:320x240
@@ -52,7 +54,7 @@ def _run_incremental(views, config) -> tuple:
 
 
 def run_case(scene: str, n_views: int, w: int, h: int, seed: int, guided: bool,
-             upsampled: bool) -> dict:
+             native: int = 0, native_peak: float = 0.0, repeats: int = 0) -> dict:
     from ooi_seg_ros.sfm.batch import batch_triangulate
     from ooi_seg_ros.sfm.incremental import IncrementalConfig
     from ooi_seg_ros.sim import simulate_capture
@@ -69,9 +71,15 @@ def run_case(scene: str, n_views: int, w: int, h: int, seed: int, guided: bool,
 
     load0 = os.getloadavg()[0]
     cloud, every, timing = _run_incremental(views, IncrementalConfig(guided_matching=guided))
-    if upsampled:  # the previous default: SIFT's first octave always upsampled
-        up_cloud, _, up_timing = _run_incremental(
-            views, IncrementalConfig(guided_matching=guided, sift_upsample_max_pixels=0))
+    if native:  # SIFT's first octave not upsampled for frames larger than the budget
+        extra = {"peak_threshold": native_peak} if native_peak > 0 else {}
+        nat_cloud, _, nat_timing = _run_incremental(views, IncrementalConfig(
+            guided_matching=guided, sift_upsample_max_pixels=native, **extra))
+    spread = []
+    for _ in range(repeats):  # the same incremental run again: how much the load moves it
+        l0 = os.getloadavg()[0]
+        _, _, t = _run_incremental(views, IncrementalConfig(guided_matching=guided))
+        spread.append({**t, "load": (l0, os.getloadavg()[0])})
     t0 = time.perf_counter()
     bcloud, _ = batch_triangulate(views)
     t_batch = time.perf_counter() - t0
@@ -83,13 +91,13 @@ def run_case(scene: str, n_views: int, w: int, h: int, seed: int, guided: bool,
                 "med_dist_frac": a[0], "within_1pct": a[1]}
 
     out = {"case": f"{scene} {n_views}x {w}x{h}", "render_s": t_render,
-           "load": (load0, os.getloadavg()[0]),
+           "load": (load0, os.getloadavg()[0]), "repeats": spread,
            "inc": {**timing, **stats(cloud)},
            "inc_all": {**no_timing, **stats(every)},
            "inc_t3": {**no_timing, **stats(every.subset(every.track_lengths() >= 3))},
            "batch": {**no_timing, "kf_per_s": len(views) / t_batch, **stats(bcloud)}}
-    if upsampled:
-        out["inc_up"] = {**up_timing, **stats(up_cloud)}
+    if native:
+        out["inc_nat"] = {**nat_timing, **stats(nat_cloud)}
     return out
 
 
@@ -100,15 +108,20 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--guided", action="store_true",
                     help="incremental path with guided matching (IncrementalConfig option)")
-    ap.add_argument("--also-upsampled", action="store_true",
-                    help="add the incremental path with SIFT's first octave always upsampled "
-                         "(sift_upsample_max_pixels=0, the default before) as row inc_up")
+    ap.add_argument("--native-octave", type=int, default=0, metavar="PIXELS",
+                    help="add row inc_nat: the incremental path with sift_upsample_max_pixels "
+                         "PIXELS (e.g. 307200: 640x480 frames not upsampled)")
+    ap.add_argument("--native-peak", type=float, default=0.0,
+                    help="SIFT peak_threshold of the inc_nat row (default: the config's)")
+    ap.add_argument("--repeats", type=int, default=0,
+                    help="time the incremental path this many more times per case (spread)")
     args = ap.parse_args()
     rows = []
     for c in args.cases:
         scene, n, size = c.split(":")
         w, h = (int(x) for x in size.split("x"))
-        r = run_case(scene, int(n), w, h, args.seed, args.guided, args.also_upsampled)
+        r = run_case(scene, int(n), w, h, args.seed, args.guided, args.native_octave,
+                     args.native_peak, args.repeats)
         rows.append(r)
         print(f"done {r['case']} (render {r['render_s']:.0f}s, load average "
               f"{r['load'][0]:.1f} -> {r['load'][1]:.1f})", flush=True)
@@ -117,7 +130,7 @@ def main() -> int:
            f"{'med dist/size':>13s} {'<1% size':>8s}")
     print(hdr)
     for r in rows:
-        for path in ("inc", "inc_all", "inc_t3", "inc_up", "batch"):
+        for path in ("inc", "inc_all", "inc_t3", "inc_nat", "batch"):
             if path not in r:
                 continue
             m = r[path]
@@ -126,6 +139,11 @@ def main() -> int:
                   f"{m['med_cpu_per_kf']:7.2f} {m['p95_cpu_per_kf']:7.2f} "
                   f"{m['points']:7d} {m['track']:6.2f} {m['med_dist_frac']:13.5f} "
                   f"{m['within_1pct']:8.3f}")
+        for k, t in enumerate(r["repeats"]):
+            print(f"{'':26s} inc repeat {k + 1}: s/kf median {t['med_s_per_kf']:.2f} p95 "
+                  f"{t['p95_s_per_kf']:.2f} max {t['max_s_per_kf']:.2f}, cpu s/kf median "
+                  f"{t['med_cpu_per_kf']:.2f} p95 {t['p95_cpu_per_kf']:.2f} (load average "
+                  f"{t['load'][0]:.1f} -> {t['load'][1]:.1f})")
         share = r['inc']['points'] / max(r['batch']['points'], 1)
         ok = share >= 0.9 and r['inc']['med_dist_frac'] <= r['batch']['med_dist_frac']
         print(f"{'':26s} inc/batch points {share:.2f}, median distance "

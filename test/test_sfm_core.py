@@ -105,10 +105,10 @@ def test_guided_matching_grows_tracks_into_later_keyframes(sim, built):
 
 def test_large_keyframes_skip_the_upsampled_sift_octave(sim, built):
     plain_sfm, _, plain = built
-    default = IncrementalSfM(IncrementalConfig())
-    assert default.first_octave(320, 240) == -1 and default.first_octave(640, 480) == 0
-    always = IncrementalSfM(IncrementalConfig(sift_upsample_max_pixels=0))
-    assert always.first_octave(1920, 1080) == -1
+    budget = IncrementalSfM(IncrementalConfig(sift_upsample_max_pixels=640 * 480))
+    assert budget.first_octave(320, 240) == -1 and budget.first_octave(640, 480) == 0
+    default = IncrementalSfM(IncrementalConfig())  # COLMAP's default: always upsampled
+    assert default.first_octave(1920, 1080) == -1
     # a budget just below this capture's doubled frames: native-resolution SIFT throughout
     sfm = IncrementalSfM(IncrementalConfig(sift_upsample_max_pixels=4 * 256 * 192 - 1))
     stats = [sfm.add_keyframe(v) for v in sim.capture.views]

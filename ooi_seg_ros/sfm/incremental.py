@@ -1,11 +1,11 @@
 """Incremental SfM with known poses (the drone case).
 
-Each keyframe: SIFT (pycolmap) on the grey image (its first octave upsampled only for small
-images, so the extraction cost per keyframe stays bounded as frames grow), keypoints
-undistorted to normalised camera coordinates, pairs chosen from the poses (sequential
-neighbours plus the keyframes whose view frustums overlap most), mutual-nearest-neighbour
-matching with Lowe's ratio test, and geometric verification with the epipolar geometry the
-known poses imply (Sampson distance in pixels).
+Each keyframe: SIFT (pycolmap) on the grey image (optionally with its first octave upsampled
+only for small images, bounding the extraction cost as frames grow), keypoints undistorted
+to normalised camera coordinates, pairs chosen from the poses (sequential neighbours plus the
+keyframes whose view frustums overlap most), mutual-nearest-neighbour matching with Lowe's
+ratio test, and geometric verification with the epipolar geometry the known poses imply
+(Sampson distance in pixels).
 Verified matches are merged into tracks by an incremental union-find. ``cloud()`` triangulates
 only tracks that changed since the last call (multi-view DLT with the poses fixed), drops
 observations with a large reprojection error, and keeps points with enough triangulation angle
@@ -41,13 +41,11 @@ class IncrementalConfig:
 
     max_features: int = 4096  # SIFT features per keyframe
     peak_threshold: float = 0.0066  # SIFT contrast threshold (COLMAP default / octave count)
-    sift_upsample_max_pixels: int = 640 * 480  # SIFT doubles the image for its first octave
-    # (finer features; 4x the scale-space work) only while the doubled image has at most this
-    # many pixels: 320x240 keyframes are upsampled, 640x480 and larger are not, so the SIFT cost
-    # per keyframe stays bounded (<= 0 = always upsample, COLMAP's default; see BENCHMARKS)
-    peak_threshold_native: float = 0.0022  # contrast threshold used instead of peak_threshold
-    # when the first octave is not upsampled: lower, so that the native-resolution octaves
-    # give the points the upsampled octave would have (measured at 640x480, see BENCHMARKS)
+    sift_upsample_max_pixels: int = 0  # > 0: SIFT doubles the image for its first octave
+    # (finer features; 4x the scale-space work, most of the extraction time) only while the
+    # doubled image has at most this many pixels, so larger frames cost less; 0 = always
+    # (COLMAP's default). Off: at 640x480 it was 2.5x cheaper on one scene but lost accuracy
+    # on another (see BENCHMARKS)
     ratio: float = 0.8  # Lowe ratio test: best/second-best descriptor distance below this
     sequential_pairs: int = 3  # match with this many previous keyframes in capture order
     overlap_pairs: int = 5  # ... plus this many other keyframes with the largest view overlap
@@ -231,8 +229,7 @@ class IncrementalSfM:
             opt.max_image_size = 100000
             opt.sift.max_num_features = self.config.max_features
             opt.sift.first_octave = first_octave
-            opt.sift.peak_threshold = (self.config.peak_threshold if first_octave < 0
-                                       else self.config.peak_threshold_native)
+            opt.sift.peak_threshold = self.config.peak_threshold
             with warnings.catch_warnings():  # pycolmap.Sift takes numpy images directly
                 warnings.simplefilter("ignore", DeprecationWarning)
                 self._sift[first_octave] = pycolmap.Sift(opt, pycolmap.Device.cpu)
