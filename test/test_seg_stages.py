@@ -276,3 +276,14 @@ def test_background_planes_find_the_wall_not_the_object():
     n, d = planes[0][:3], planes[0][3]
     assert abs(abs(n[1]) - 1) < 1e-2 and abs(abs(d) - 4.0) < 0.05
     assert (obj @ n + d > 0).all()  # normal towards the cameras, object on their side
+
+
+def test_background_planes_skip_a_second_layer_of_the_same_wall():
+    """A thick wall (two RANSAC layers) is one plane, not two."""
+    from ooi_seg_ros.seg.photo import background_planes
+    rng = np.random.default_rng(1)
+    wall = np.c_[rng.uniform(-4, 4, 3000), np.full(3000, 4.0) + rng.uniform(-0.1, 0.1, 3000),
+                 rng.uniform(0, 3, 3000)]
+    obj = _sphere(800, r=0.5, c=(0, 0, 0.5))
+    cams = np.array([v.pose.t for v in _ring_views(12, radius=3.0, height=1.5)])
+    assert len(background_planes(wall, obj, cams, 0.02, 3, seed=0)) == 1

@@ -182,7 +182,8 @@ def background_planes(bg_xyz: np.ndarray, ooi_xyz: np.ndarray, cam_centers: np.n
     clear of it (farther than the object's own radius), so no plane can explain the object.
 
     Planes come from sequential RANSAC at ``threshold`` (the floor stage's inlier threshold);
-    a plane needs >= 5% of the background points (and >= 50).
+    a plane needs >= 5% of the background points (and >= 50); a plane parallel to one already
+    kept and within the object's radius of it is the same surface again and is skipped.
     """
     import open3d as o3d
     out: list[np.ndarray] = []
@@ -207,7 +208,10 @@ def background_planes(bg_xyz: np.ndarray, ooi_xyz: np.ndarray, cam_centers: np.n
         m = m * (side if side != 0 else 1.0)  # normal towards the cameras
         cams_ok = np.mean(cam_centers @ m[:3] + m[3] > 0) >= 0.9
         h = ooi_xyz @ m[:3] + m[3]
-        if cams_ok and np.quantile(h, 0.02) > max(r_obj, 3 * threshold):
+        # the same surface found again (a thick floor's second layer) is not a new plane
+        dup = any(abs(float(m[:3] @ q[:3])) > 0.98 and abs(float(m[3] - q[3])) < r_obj
+                  for q in out)
+        if cams_ok and not dup and np.quantile(h, 0.02) > max(r_obj, 3 * threshold):
             out.append(m)
         rest = np.delete(rest, np.asarray(inl, np.int64), axis=0)
     return np.array(out).reshape(-1, 4)
