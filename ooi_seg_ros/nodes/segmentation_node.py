@@ -101,6 +101,10 @@ class SegNodeConfig:
     cloud_runs: bool = dataclasses.field(
         default=True, metadata={"doc": "between full runs, run the point stages alone on "
                                        "each new SfM cloud and publish ooi/points from them"})
+    provisional_refresh: bool = dataclasses.field(
+        default=True, metadata={"doc": "re-render provisional masks when a newer OOI cloud "
+                                       "comes (newest keyframes first, within cloud_max_duty; "
+                                       "new keyframes go first)"})
     cloud_max_duty: float = dataclasses.field(
         default=0.5, metadata={"doc": "share of the wall time cloud-only runs may take: one "
                                       "of t seconds starts the next no sooner than t/duty "
@@ -115,6 +119,7 @@ SPECS = {
     "max_keyframes": ParamSpec("keyframes kept in memory", 2, 1000000, read_only=True),
     "mask_stride": ParamSpec("publish masks for every k-th keyframe", 1, 1000),
     "provisional_masks": ParamSpec("provisional masks for keyframes no run covered yet"),
+    "provisional_refresh": ParamSpec("re-render provisional masks from a newer OOI cloud"),
     "cloud_runs": ParamSpec("point stages alone on each new SfM cloud between full runs"),
     "cloud_max_duty": ParamSpec("share of the wall time cloud-only runs may take", 0.01, 1.0),
     "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
@@ -186,7 +191,8 @@ class SegmentationNode(Node):
         self._ooi: Optional[_OoiCloud] = None  # newest OOI cloud published
         self._mesh = None  # mesh of the last full run (mask renderer for masks.mode "mesh")
         self._final: set[int] = set()  # keyframes whose latest mask is a full run's
-        self._provisional: dict[int, int] = {}  # keyframe -> SfM cloud stamp of its mask
+        self._provisional: dict[int, int] = {}  # keyframe -> cloud seq its mask came from
+        self._refresh_next_t = 0.0  # monotonic time before which no provisional mask refresh
         self._cloud_claimed = 0  # newest SfM cloud seq a run has taken up (full or cloud-only)
         self._cloud_next_t = 0.0  # monotonic time before which no cloud-only run starts
         self._fast_lock = threading.Lock()  # one fast step at a time
@@ -206,6 +212,7 @@ class SegmentationNode(Node):
         self.pub_mask = self.create_publisher(Image, "ooi/mask",
                                               reliable_qos(depth=self.cfg.mask_qos_depth))
         self._mask_pub_lock = threading.Lock()  # masks come from two threads
+        self._mask_batch = 0  # masks published since the subscribers last acknowledged all
         self.create_service(Trigger, "~/segment", self.on_segment_srv)
         self._last_input = time.monotonic()
         self.last_run_newest_ns: Optional[int] = None  # newest keyframe of the last run
@@ -352,15 +359,23 @@ class SegmentationNode(Node):
                       provisional_from: Optional[int] = None) -> bool:
         """Publishes one keyframe's mask at its own size and records whether it is final.
 
-        ``provisional_from`` (the SfM cloud stamp it was rendered from) marks a provisional
-        mask; it is dropped when the keyframe has a final mask already or was evicted. The
-        check and the publication happen under one lock, so a provisional mask never goes out
-        after the final one of the same keyframe.
+        ``provisional_from`` (the sequence number of the SfM cloud whose OOI cloud it was
+        rendered from) marks a provisional mask; it is dropped when the keyframe has a final
+        mask already or was evicted. The check and the publication happen under one lock, so
+        a provisional mask never goes out after the final one of the same keyframe.
         """
         cam, f = full
         mask = upscale_mask(np.asarray(mask, bool), f, cam.width, cam.height)
         msg = msgconv.mask_to_image(mask, msgconv.ns_to_stamp(stamp_ns), "camera_optical")
         with self._mask_pub_lock:
+            if self._mask_batch >= self.cfg.mask_qos_depth:
+                # the middleware keeps only mask_qos_depth masks: let the subscribers catch
+                # up rather than overwrite masks they have not acknowledged yet
+                if not self.pub_mask.wait_for_all_acked(Duration(seconds=10.0)):
+                    self.diag.count("mask_ack_timeouts")
+                    self.throttle.warn("maskack", "a mask subscriber did not acknowledge "
+                                                  "within 10 s; it may miss masks")
+                self._mask_batch = 0
             with self._lock:
                 if provisional_from is None:
                     self._provisional.pop(stamp_ns, None)
@@ -370,6 +385,7 @@ class SegmentationNode(Node):
                 else:
                     self._provisional[stamp_ns] = provisional_from
             self.pub_mask.publish(msg)
+            self._mask_batch += 1
         return True
 
     def _publish(self, result, views: list[View], full: dict, cloud_stamp: int) -> None:
@@ -378,7 +394,6 @@ class SegmentationNode(Node):
             self.pub_mesh.publish(msgconv.mesh_to_marker(result.mesh, stamp, self.cfg.frame_id))
         with self._lock:
             self._mesh = result.mesh
-        batch = 0
         for i, v in enumerate(views):
             if i % self.cfg.mask_stride:
                 continue
@@ -386,16 +401,7 @@ class SegmentationNode(Node):
             if mask is None:
                 self.diag.count("masks_missing")
                 continue
-            if batch == self.cfg.mask_qos_depth:
-                # the middleware keeps only mask_qos_depth masks: let the subscribers catch up
-                # rather than overwrite masks they have not acknowledged yet
-                if not self.pub_mask.wait_for_all_acked(Duration(seconds=10.0)):
-                    self.diag.count("mask_ack_timeouts")
-                    self.throttle.warn("maskack", "a mask subscriber did not acknowledge "
-                                                  "within 10 s; it may miss masks")
-                batch = 0
             self._publish_mask(mask, v.stamp_ns, full[v.stamp_ns])
-            batch += 1
             self.diag.count("masks_published")
         self._report_provisional()
 
@@ -426,7 +432,10 @@ class SegmentationNode(Node):
                 self._provisional_step()
 
     def _provisional_step(self) -> int:
-        """Renders and publishes a mask for every kept keyframe that has none; newest first."""
+        """Renders and publishes a provisional mask for every kept keyframe that has no mask,
+        newest first; then, when due, re-renders provisional masks made from an older OOI
+        cloud (early clouds from few keyframes are poor), newest first, yielding to new
+        keyframes and spending at most ``cloud_max_duty`` of the wall time on it."""
         if not self.cfg.provisional_masks:
             return 0
         with self._lock:
@@ -434,26 +443,41 @@ class SegmentationNode(Node):
         if ooi is None or len(ooi.xyz) == 0:
             return 0
         with self.assembler.lock:
-            todo = [(v, (self.assembler.full_cameras[s], self.assembler.factors[s]))
+            kept = [(v, (self.assembler.full_cameras[s], self.assembler.factors[s]))
                     for s, v in reversed(self.assembler.keyframes.items())]
         with self._lock:
-            todo = [(v, f) for v, f in todo
-                    if v.stamp_ns not in self._final and v.stamp_ns not in self._provisional]
-        if not todo:
+            new = [(v, f) for v, f in kept
+                   if v.stamp_ns not in self._final and v.stamp_ns not in self._provisional]
+            stale = [(v, f) for v, f in kept
+                     if self._provisional.get(v.stamp_ns, ooi.cloud_seq) < ooi.cloud_seq]
+        if not self.cfg.provisional_refresh or time.monotonic() < self._refresh_next_t:
+            stale = []
+        if not new and not stale:
             return 0
         mcfg = dataclasses.replace(self.seg_cfg.masks, hull_consistency=False)
         if mcfg.mode == "mesh" and (mesh is None or mesh.is_empty):
             mcfg.mode = "points"  # as the pipeline does without a mesh
         if mesh is None:
             mesh = TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32))
-        for v, full in todo:
-            t0 = time.monotonic()
-            masks, _p = render_masks([v], mcfg, mesh, ooi.xyz)
-            if self._publish_mask(masks[v.key], v.stamp_ns, full, provisional_from=ooi.stamp_ns):
-                self.diag.count("masks_provisional_published")
-                self.diag.timing("provisional_mask", time.monotonic() - t0)
+        done = 0
+        for refresh, todo in ((False, new), (True, stale)):
+            t_start = time.monotonic()
+            for v, full in todo:
+                if refresh and self._wake.is_set():
+                    break  # a new keyframe or cloud came: it goes first (next step)
+                t0 = time.monotonic()
+                masks, _p = render_masks([v], mcfg, mesh, ooi.xyz)
+                if self._publish_mask(masks[v.key], v.stamp_ns, full,
+                                      provisional_from=ooi.cloud_seq):
+                    done += 1
+                    self.diag.count("masks_provisional_refreshed" if refresh
+                                    else "masks_provisional_published")
+                    self.diag.timing("provisional_mask", time.monotonic() - t0)
+            if refresh and todo:
+                self._refresh_next_t = t_start + (time.monotonic() - t_start) \
+                    / self.cfg.cloud_max_duty
         self._report_provisional()
-        return len(todo)
+        return done
 
     def _cloud_step(self) -> bool:
         """A cloud-only run on the newest SfM cloud if no run took it up and one is due."""
