@@ -152,3 +152,24 @@ def test_cpu_clock_budget_stops_and_reports(sim):
     assert m["cpu_seconds"] > 0.4 and m["seconds"] > 0
     with pytest.raises(InputError, match="budget_clock"):
         train(sim, masks, sim.gt_ooi_points[::40], _cfg(budget_clock="gpu"))
+
+
+def test_scene_scale_follows_the_camera_orbit():
+    """Position lr scale: 1.1 x the camera spread (3DGS), never below the cloud's radius."""
+    from ooi_seg_ros.core.geometry import look_at
+    from ooi_seg_ros.core.types import CameraIntrinsics
+    from ooi_seg_ros.train.raster_common import RasterCamera
+    from ooi_seg_ros.train.trainer import _Frame, _scene_scale
+    cam = CameraIntrinsics(width=8, height=6, fx=8.0, fy=8.0, cx=3.5, cy=2.5)
+
+    def frame(eye):
+        rc = RasterCamera.from_view(cam, look_at(np.asarray(eye, float), np.zeros(3)))
+        return _Frame("k", rc, torch.zeros(6, 8, 3), torch.ones(6, 8, dtype=torch.bool))
+
+    angles = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    orbit = [frame([5 * np.cos(a), 5 * np.sin(a), 1.0]) for a in angles]
+    pts = np.random.default_rng(0).normal(size=(100, 3)) * 0.3
+    assert abs(_scene_scale(pts, orbit) - 5.5) < 0.1
+    assert _scene_scale(pts * 100, orbit) == pytest.approx(
+        float(np.linalg.norm(pts * 100 - (pts * 100).mean(0), axis=1).max()))
+    assert _scene_scale(pts[:1], [frame([0.0, 5.0, 1.0])]) == 1.0  # degenerate: unit scale
