@@ -66,7 +66,9 @@ def stream(capture, fps, duration, pubs, stats, stop):
             time.sleep(due - now)
         else:
             stats["late"] = stats.get("late", 0) + 1
-        img, info, v = msgs[min(int(i / n * len(views)), len(views) - 1)]
+        vi = min(int(i / n * len(views)), len(views) - 1)
+        img, info, v = msgs[vi]
+        stats.setdefault("view_of", {})[base_ns + int(i * 1e9 / fps)] = vi
         stamp = msgconv.ns_to_stamp(base_ns + int(i * 1e9 / fps))
         img.header.stamp = stamp
         info.header.stamp = stamp
@@ -104,9 +106,16 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
             PointCloud2, "sfm/points", lambda m: got["sfm"].setdefault(
                 msgconv.stamp_to_ns(m.header.stamp), time.monotonic()), latched_qos())
 
-        def on_mask(m):  # arrival times of each keyframe's masks
-            got["mask"].setdefault(msgconv.stamp_to_ns(m.header.stamp), []).append(
-                time.monotonic())
+        def on_mask(m):  # arrival times of each keyframe's masks, IoU vs the ground truth
+            t = time.monotonic()
+            k = msgconv.stamp_to_ns(m.header.stamp)
+            got["mask"].setdefault(k, []).append(t)
+            vi = stats.get("view_of", {}).get(k)
+            gt = capture.views[vi].gt_mask if vi is not None else None
+            if gt is not None:
+                pred = msgconv.image_to_mask(m)
+                got.setdefault("iou", {}).setdefault(k, []).append(
+                    float((pred & gt).sum() / max((pred | gt).sum(), 1)))
 
         feeder.create_subscription(Image, "ooi/mask", on_mask, reliable_qos(100))
         # which of a keyframe's masks were provisional, in publication order (one publisher,
@@ -195,6 +204,15 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
                 (got["mask"][k][0] if got["mask"].get(k) else None)
             return t - pub[k] if t is not None and k in pub else None
 
+        def mask_iou(provisional):  # mean IoU of each keyframe's last (non-)provisional mask
+            vals = []
+            for k, kinds in got["mask_provisional"].items():
+                ious = got.get("iou", {}).get(k, [])
+                sel = [x for x, p in zip(ious, kinds) if p == provisional]
+                if sel:
+                    vals.append(sel[-1])
+            return (round(float(np.mean(vals)), 3), len(vals)) if vals else None
+
         def r1(x):
             return round(x, 1) if x is not None else None
 
@@ -221,6 +239,9 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
             "cloud_only_runs": seg.cloud_runs,
             "cloud_only_run_s_median": round(seg.diag.timings.get("cloud_run_median", 0.0), 1),
             "masks_provisional_published": segc.get("masks_provisional_published", 0),
+            "masks_provisional_refreshed": segc.get("masks_provisional_refreshed", 0),
+            "iou_last_provisional_mask": mask_iou(True),
+            "iou_final_mask": mask_iou(False),
             "masks_final_published": segc.get("masks_published", 0),
             "provisional_mask_s": round(seg.diag.timings.get("provisional_mask", 0.0), 2),
         })
