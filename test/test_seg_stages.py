@@ -259,6 +259,12 @@ def test_plane_check_calls_the_floor_floor_and_the_object_not():
           floor_hit / floor_n)
     assert obj_hit < 0.02 * obj_n
     assert floor_hit > 0.25 * floor_n
+    # on a reduced grid (what GrabCut works on for large crops): same shape, same kind of map
+    full = pc.floor_map(4, (0, 96, 0, 128))
+    half = pc.floor_map(4, (0, 96, 0, 128), (48, 64))
+    assert half.shape == (48, 64)
+    assert abs(half.mean() - full.mean()) < 0.1
+    assert (half & views[4].gt_mask[::2, ::2]).sum() < 0.02 * views[4].gt_mask[::2, ::2].sum()
 
 
 def test_background_planes_find_the_wall_not_the_object():

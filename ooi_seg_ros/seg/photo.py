@@ -22,6 +22,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 from scipy import ndimage
@@ -98,13 +99,32 @@ class PlaneConsistency:
             self._dirs[key] = undistorted_dirs(c).reshape(c.height, c.width, 3)
         return self._dirs[key]
 
-    def plane_points(self, i: int, box: tuple[int, int, int, int], k: int = 0
-                     ) -> tuple[np.ndarray, np.ndarray]:
-        """Where the rays of crop ``box`` of view ``i`` meet plane ``k``: ([h*w, 3], hit)."""
+    def _crop_dirs(self, i: int, box: tuple[int, int, int, int],
+                   shape: Optional[tuple[int, int]] = None) -> np.ndarray:
+        """Camera-frame ray directions [h*w, 3] of crop ``box`` of view ``i``, sampled on a
+        ``shape`` grid over the crop (pixel centres of the resized crop; default: every
+        pixel)."""
         y0, y1, x0, x1 = box
+        rays = self._rays(i)
+        if shape is None or tuple(shape) == (y1 - y0, x1 - x0):
+            return rays[y0:y1, x0:x1].reshape(-1, 3)
+        import cv2
+        h, w = shape
+        cols = (x0 + (np.arange(w) + 0.5) * (x1 - x0) / w - 0.5).astype(np.float32)
+        rows = (y0 + (np.arange(h) + 0.5) * (y1 - y0) / h - 0.5).astype(np.float32)
+        mx, my = np.meshgrid(cols, rows)
+        d = cv2.remap(rays.astype(np.float32), mx, my, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE)
+        return d.reshape(-1, 3).astype(float)
+
+    def plane_points(self, i: int, box: tuple[int, int, int, int], k: int = 0,
+                     shape: Optional[tuple[int, int]] = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Where the rays of crop ``box`` of view ``i`` (on a ``shape`` grid, see
+        ``_crop_dirs``) meet plane ``k``: ([h*w, 3], hit)."""
         v = self.views[i]
         n, d0 = self.planes[k, :3], self.planes[k, 3]
-        d = self._rays(i)[y0:y1, x0:x1].reshape(-1, 3) @ v.pose.R.T  # world ray directions
+        d = self._crop_dirs(i, box, shape) @ v.pose.R.T  # world ray directions
         den = d @ n
         with np.errstate(divide="ignore", invalid="ignore"):
             t = -(v.pose.t @ n + d0) / den
@@ -133,12 +153,22 @@ class PlaneConsistency:
         X, hit = self.plane_points(i, box, k)
         return self.sample(j, X, hit, (box[1] - box[0], box[3] - box[2]))
 
-    def floor_map(self, i: int, box: tuple[int, int, int, int]) -> np.ndarray:
-        """Bool [h, w] of the crop ``box`` (y0, y1, x0, x1) of view ``i``: pixels on the floor."""
+    def floor_map(self, i: int, box: tuple[int, int, int, int],
+                  shape: Optional[tuple[int, int]] = None) -> np.ndarray:
+        """Bool [h, w] of the crop ``box`` (y0, y1, x0, x1) of view ``i``: pixels on the floor.
+
+        ``shape`` (h, w) computes it on the crop resized to that size (what GrabCut works on;
+        the cost then does not grow with the image resolution); default: the crop's own size.
+        """
         t0 = time.perf_counter()
         y0, y1, x0, x1 = box
         cfg = self.cfg
         a = self._image(i)[y0:y1, x0:x1]
+        if shape is not None and tuple(shape) != a.shape[:2]:
+            import cv2
+            a = cv2.resize(a, (int(shape[1]), int(shape[0])), interpolation=cv2.INTER_AREA)
+        else:
+            shape = None
         win = max(1, int(cfg.window))
 
         def box_mean(x: np.ndarray) -> np.ndarray:
@@ -150,7 +180,7 @@ class PlaneConsistency:
         textured = va > cfg.min_std ** 2
         fl = np.zeros(ga.shape, bool)
         for k in range(len(self.planes)):
-            X, hit = self.plane_points(i, box, k)
+            X, hit = self.plane_points(i, box, k, shape)
             votes = np.zeros(ga.shape, np.int32)
             for j in self.nbrs[i]:
                 b, ok = self.sample(j, X, hit, ga.shape)

@@ -147,16 +147,17 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         if floor is not None:
             fkey = (j, box)
             if fkey not in floor_cache:
-                floor_cache[fkey] = floor.floor_map(j, box)
+                # on the (possibly reduced) grid GrabCut works on: its cost is bounded too
+                floor_cache[fkey] = floor.floor_map(j, box, crop_s.shape)
             fl = floor_cache[fkey]
+            fl_full = fl if scale >= 1.0 else cv2.resize(
+                fl.astype(np.uint8), (crop.shape[1], crop.shape[0]),
+                interpolation=cv2.INTER_NEAREST).astype(bool)
             # the floor pixels are known background: the silhouette without them is both the
             # fallback and the reference of the area check
             fallback = m.copy()
-            fallback[box[0]:box[1], box[2]:box[3]] &= ~fl
-            ref_area = (crop & ~fl).sum()
-            if scale < 1.0:
-                fl = cv2.resize(fl.astype(np.uint8), (crop_s.shape[1], crop_s.shape[0]),
-                                interpolation=cv2.INTER_NEAREST).astype(bool)
+            fallback[box[0]:box[1], box[2]:box[3]] &= ~fl_full
+            ref_area = (crop & ~fl_full).sum()
             gc[fl & ~fg_seed] = cv2.GC_BGD
         gc[fg_seed & ~bg_seed] = cv2.GC_FGD
         if floor is not None and floor.cfg.over_seeds:
