@@ -103,8 +103,12 @@ class SegNodeConfig:
                                        "each new SfM cloud and publish ooi/points from them"})
     provisional_refresh: bool = dataclasses.field(
         default=True, metadata={"doc": "re-render provisional masks when a newer OOI cloud "
-                                       "comes (newest keyframes first, within cloud_max_duty; "
-                                       "new keyframes go first)"})
+                                       "comes (newest keyframes first, within "
+                                       "refresh_max_duty; new keyframes go first)"})
+    refresh_max_duty: float = dataclasses.field(
+        default=0.1, metadata={"doc": "share of the wall time re-rendering provisional masks "
+                                      "may take (in a one-process bench, 0.5 cost the SfM "
+                                      "node frames through the shared interpreter lock)"})
     cloud_max_duty: float = dataclasses.field(
         default=0.5, metadata={"doc": "share of the wall time cloud-only runs may take: one "
                                       "of t seconds starts the next no sooner than t/duty "
@@ -122,6 +126,8 @@ SPECS = {
     "provisional_refresh": ParamSpec("re-render provisional masks from a newer OOI cloud"),
     "cloud_runs": ParamSpec("point stages alone on each new SfM cloud between full runs"),
     "cloud_max_duty": ParamSpec("share of the wall time cloud-only runs may take", 0.01, 1.0),
+    "refresh_max_duty": ParamSpec("share of the wall time provisional refreshes may take",
+                                  0.01, 1.0),
     "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
                                  read_only=True),
     "image_downscale": ParamSpec("integer downscale of kept images (0 = auto)", 0, 64,
@@ -435,7 +441,7 @@ class SegmentationNode(Node):
         """Renders and publishes a provisional mask for every kept keyframe that has no mask,
         newest first; then, when due, re-renders provisional masks made from an older OOI
         cloud (early clouds from few keyframes are poor), newest first, yielding to new
-        keyframes and spending at most ``cloud_max_duty`` of the wall time on it."""
+        keyframes and spending at most ``refresh_max_duty`` of the wall time on it."""
         if not self.cfg.provisional_masks:
             return 0
         with self._lock:
@@ -475,7 +481,7 @@ class SegmentationNode(Node):
                     self.diag.timing("provisional_mask", time.monotonic() - t0)
             if refresh and todo:
                 self._refresh_next_t = t_start + (time.monotonic() - t_start) \
-                    / self.cfg.cloud_max_duty
+                    / self.cfg.refresh_max_duty
         self._report_provisional()
         return done
 
