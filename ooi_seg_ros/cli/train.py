@@ -31,9 +31,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "object masks, MCMC densification under a cap, every 8th view held out.")
     p.add_argument("input", help="ooi-seg segment output folder, or a capture with --masks")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=int, default=None, help="training steps (default 1000)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help=f"training steps (default {TrainConfig.iterations})")
     p.add_argument("--max-gaussians", type=int, default=None,
-                   help="hard cap on the number of Gaussians (default 10000)")
+                   help="hard cap on the number of Gaussians "
+                        f"(default {TrainConfig.max_gaussians})")
     p.add_argument("--masks", default=None,
                    help="folder of <key>.png object masks (overrides the segmentation's)")
     p.add_argument("--init", default=None, help="PLY point cloud to start from "
