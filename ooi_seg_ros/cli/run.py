@@ -105,7 +105,10 @@ def run(args: argparse.Namespace) -> int:
         summary["times_s"]["train"] = time.perf_counter() - t
         rep = out / "train" / "report.json"
         if rep.exists():
-            summary["train"] = json.loads(rep.read_text()).get("metrics")
+            trep = json.loads(rep.read_text())
+            summary["train"] = {k: trep.get(k) for k in (
+                "heldout_psnr", "heldout_ssim", "n_gaussians", "iterations", "its_per_s",
+                "seconds", "cpu_seconds", "backend", "nan_steps", "dropped_no_pose")}
     summary["times_s"]["total"] = time.perf_counter() - t0
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
     print("\noutputs:")
