@@ -32,6 +32,7 @@ import time
 import numpy as np
 import psutil
 import rclpy
+import yaml
 from geometry_msgs.msg import PoseStamped
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
@@ -80,7 +81,7 @@ def stream(capture, fps, duration, pubs, stats, stop):
 
 
 def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
-             fast_path: bool = True) -> dict:
+             fast_path: bool = True, seg_params: tuple = ()) -> dict:
     ctx = Context()
     rclpy.init(context=ctx)
     ns = "/load_nodes" if with_nodes else "/load_base"
@@ -96,7 +97,7 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
             Parameter("every_n_keyframes", value=10),
             Parameter("image_budget_mb", value=float(budget_mb)),
             Parameter("provisional_masks", value=fast_path),
-            Parameter("cloud_runs", value=fast_path)])
+            Parameter("cloud_runs", value=fast_path)] + list(seg_params))
         nodes += [sfm, seg]
         feeder.create_subscription(PointCloud2, "ooi/points",
                                    lambda m: got["ooi"].append((time.monotonic(), m)),
@@ -365,7 +366,11 @@ def main() -> None:
     ap.add_argument("--no-fast-path", action="store_true",
                     help="segmentation node without provisional masks and cloud-only runs "
                          "(OOI cloud and masks only from full runs), for comparison")
+    ap.add_argument("--seg-param", action="append", default=[], metavar="NAME=VALUE",
+                    help="extra segmentation_node parameter (YAML value; after --no-fast-path)")
     args = ap.parse_args()
+    seg_params = tuple(Parameter(k, value=yaml.safe_load(v))
+                       for k, v in (a.split("=", 1) for a in args.seg_param))
     if not args.default_malloc:
         limit_heap_growth()  # as the nodes' main() does (run_node)
     w, h = (int(x) for x in args.size.split("x"))
@@ -394,7 +399,7 @@ def main() -> None:
     base = run_case(cap, args.fps, args.baseline_duration, with_nodes=False)
     print(f"baseline (bare subscriber, {args.baseline_duration:.0f} s): {base}", flush=True)
     res = run_case(cap, args.fps, args.duration, with_nodes=True, budget_mb=args.budget_mb,
-                   fast_path=not args.no_fast_path)
+                   fast_path=not args.no_fast_path, seg_params=seg_params)
     print(f"nodes (sfm_node + segmentation_node, {args.duration:.0f} s): {res}", flush=True)
     print("\n| case | s | published | received | decoded | dropped | keyframes (processed) | "
           "SfM s/keyframe | last kf -> SfM cloud / OOI cloud / first mask / final mask s | same, "
