@@ -44,6 +44,26 @@ def test_capture_fields():
     assert cap.meta["scene"] == "toycar" and cap.meta["seed"] == 2
 
 
+def test_object_truth_is_the_object_alone():
+    """The object-only truth equals the photo inside the object (same exposure, no noise) and
+    is black away from it; outline pixels hold only the object's share."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    sim = simulate_capture("aircraft", n_views=3, width=96, height=72, seed=1)
+    for i, v in enumerate(sim.capture.views):
+        truth = sim.object_truth(i)
+        photo = v.image.astype(np.float32) / 255.0
+        assert truth.shape == photo.shape and truth.dtype == np.float32
+        inner = binary_erosion(v.gt_mask, iterations=2)
+        assert inner.sum() > 20
+        # inside: the photo minus its sensor noise (std 1.5/255)
+        assert np.abs(truth[inner] - photo[inner]).mean() < 3.0 / 255
+        far = ~binary_dilation(v.gt_mask, iterations=2)
+        assert truth[far].max() == 0.0
+        edge = v.gt_mask & ~binary_erosion(v.gt_mask)
+        assert (truth[edge].sum(-1) <= photo[edge].sum(-1) + 0.05).mean() > 0.5
+
+
 def test_texture_is_view_consistent():
     """The same surface point has the same colour from two viewpoints (no view effects)."""
     sc = make_scene("aircraft", 0)

@@ -139,11 +139,14 @@ class Renderer:
 
     def render(self, cam: CameraIntrinsics, pose: Pose, supersample: int = 2,
                rng: Optional[np.random.Generator] = None, sensor_noise: float = 1.5,
-               exposure: float = 1.0) -> RenderResult:
+               exposure: float = 1.0, object_only: bool = False) -> RenderResult:
         """Render the view ``pose`` (camera-to-world, optical frame) with intrinsics ``cam``.
 
         ``sensor_noise`` is the std of additive Gaussian pixel noise in 0-255 units (drawn from
         ``rng``; none without one), ``exposure`` a gain (auto-exposure varies per frame).
+        ``object_only``: every sub-sample that does not see the OOI is black, so an outline
+        pixel holds coverage x object colour -- what an object-only model composited over black
+        should render (shadows the rest of the scene casts on the object stay).
         """
         ss = max(int(supersample), 1)
         S = ss * ss
@@ -189,7 +192,10 @@ class Renderer:
         sprim = np.concatenate([prim[ci * S], prim[sub]])
         shit = np.concatenate([hit[ci * S], hit[sub]])
         col = np.empty((len(sp), 3), np.float32)
-        if np.any(~shit):
+        if object_only:
+            shit = shit & self.tri_ooi[sprim]
+            col[~shit] = 0.0
+        elif np.any(~shit):
             if self.scene.indoor:
                 col[~shit] = INDOOR_FILL
             else:
