@@ -114,3 +114,45 @@ def test_cli_segment_and_eval(tmp_path, capsys):
         rep["metrics"]["mean"]["iou"])
     assert main(["segment", str(tmp_path / "missing"), "--out", str(out)]) == 1
     assert main(["eval", "--pred", str(tmp_path), "--gt", str(out / "masks")]) == 1
+
+
+def test_mask_keys_subset_equals_the_full_run(aircraft):
+    sim, cloud = aircraft
+    # 12 views are far apart: widen the plane check's neighbour cone so that the subset's
+    # views do use views outside the subset as neighbours
+    opts = {"seed": 1, "refine": {"plane_check": {"max_deg": 60.0}}}
+    full = segment(sim.capture, cloud, make_config("ours", opts))
+    keys = [v.key for v in sim.capture.views][3::4]
+    sub = segment(sim.capture, cloud, make_config("ours", opts), mask_keys=keys)
+    assert sub.params["refine"]["planes"] >= 1
+    assert set(sub.masks) == set(keys)
+    for k in keys:
+        np.testing.assert_array_equal(sub.masks[k], full.masks[k])
+    # the point stages and the mesh ran on the whole capture
+    assert sub.counts == full.counts
+    np.testing.assert_array_equal(sub.ooi_cloud.xyz, full.ooi_cloud.xyz)
+    assert sub.metrics["views"] == len(keys)
+    assert sub.metrics["mean"]["iou"] == pytest.approx(
+        np.mean([full.metrics["per_view"][k]["iou"] for k in keys]))
+    # options whose masks need the other views' masks still give the full run's masks
+    carve = {"seed": 1, "masks": {"hull_carve": True}}
+    full_c = segment(sim.capture, cloud, make_config("ours", carve))
+    sub_c = segment(sim.capture, cloud, make_config("ours", carve), mask_keys=keys[:1])
+    np.testing.assert_array_equal(sub_c.masks[keys[0]], full_c.masks[keys[0]])
+    # no keys: no masks, no metrics, the cloud still comes back
+    none = segment(sim.capture, cloud, make_config("ours"), mask_keys=[])
+    assert none.masks == {} and none.metrics is None and len(none.ooi_cloud) > 50
+    with pytest.raises(InputError, match="mask_keys"):
+        segment(sim.capture, cloud, make_config("ours"), mask_keys=["no-such-view"])
+
+
+def test_cloud_change():
+    from ooi_seg_ros.seg.pipeline import cloud_change
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-1, 1, (500, 3))
+    assert cloud_change(a, a)["changed"] == 0.0
+    moved = cloud_change(a, a + [5.0, 0, 0])
+    assert moved["added"] == 1.0 and moved["removed"] == 1.0
+    grown = cloud_change(a, np.vstack([a, rng.uniform(3, 4, (100, 3))]))
+    assert grown["added"] == pytest.approx(100 / 600) and grown["removed"] == 0.0
+    assert cloud_change(np.zeros((0, 3)), a)["changed"] == 1.0

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Optional
+from typing import Callable, Collection, Optional
 
 import numpy as np
 
@@ -114,13 +114,29 @@ class SegmentationResult:
     stage_clouds: dict = field(default_factory=dict)  # {stage: ([N,3], [N,3] rgb)} (report)
 
 
+def _needs_all_masks(cfg: SegmentationConfig) -> bool:
+    """Whether a mask of one view depends on the masks of the other views (the voxel-hull
+    options, the two-pass consistency seeds): a view subset then needs every view's mask."""
+    return bool(cfg.masks.hull_consistency or cfg.masks.hull_carve
+                or (cfg.refine.enabled and cfg.refine.fg_seeds == "consistent"))
+
+
 def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConfig] = None,
-            on_cloud: Optional[Callable[[SfmCloud], None]] = None) -> SegmentationResult:
+            on_cloud: Optional[Callable[[SfmCloud], None]] = None,
+            mask_keys: Optional[Collection[str]] = None) -> SegmentationResult:
     """Segment the OOI of ``capture`` from ``cloud`` and render a mask for every view.
 
     ``on_cloud`` (optional) is called with the OOI cloud as soon as the point stages are done,
     before the mesh and the per-view masks (the costly part), so that a live node can publish
     the OOI cloud early. An exception it raises propagates.
+
+    ``mask_keys`` (optional): render and refine masks only for the views with these keys
+    (``result.masks`` and the metrics hold only them). The point stages, the planes and the
+    mesh still use the whole capture, and every view stays available as context (neighbours
+    of the plane check), so each of these masks equals the full run's mask of that view.
+    Options that make one view's mask depend on the others' (voxel hull, consistency seeds)
+    render every mask and keep the subset (same masks, no saving). A key not in the capture
+    is an input error.
     """
     cfg = config or make_config()
     views = capture.views
@@ -128,6 +144,18 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         raise InputError("capture has no views")
     if not capture.has_poses:
         raise InputError("every view needs a pose for segmentation; run SfM or add poses")
+    wanted: Optional[set] = None
+    if mask_keys is not None:
+        if isinstance(mask_keys, str):
+            mask_keys = [mask_keys]
+        wanted = set(mask_keys)
+        unknown = wanted - {v.key for v in views}
+        if unknown:
+            raise InputError(f"mask_keys holds {len(unknown)} key(s) not in the capture, e.g. "
+                             f"{sorted(unknown)[0]!r}; pass keys of the capture's views")
+    # the views whose masks are rendered (all of them when a mask needs the others')
+    mask_views = views if wanted is None or _needs_all_masks(cfg) else [
+        v for v in views if v.key in wanted]
     warnings: list[str] = []
     counts: dict = {"input": int(len(cloud))}
     params: dict = {}
@@ -193,7 +221,7 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         warnings.append("mesh is empty; masks fall back to point splats")
         cfg.masks.mode = "points"
     t0 = time.perf_counter()
-    masks, params["masks"] = render_masks(views, cfg.masks, mesh, cloud.xyz)
+    masks, params["masks"] = render_masks(mask_views, cfg.masks, mesh, cloud.xyz)
     timings["masks"] = time.perf_counter() - t0
     if cfg.refine.enabled:
         t0 = time.perf_counter()
@@ -225,18 +253,49 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         t0 = time.perf_counter()
         masks, params["hull_carve"] = hull_carve(masks, views, cloud.xyz, cfg.masks)
         timings["hull_carve"] = time.perf_counter() - t0
+    if wanted is not None:
+        masks = {k: m for k, m in masks.items() if k in wanted}
+        params["mask_keys"] = len(masks)
     cover = np.array([m.mean() for m in masks.values()])
     n_empty = int((cover == 0).sum())
     if n_empty:
-        warnings.append(f"{n_empty} of {len(views)} views see nothing of the OOI (empty mask)")
-    if n_empty == len(views):
+        warnings.append(f"{n_empty} of {len(masks)} views see nothing of the OOI (empty mask)")
+    if masks and n_empty == len(masks):
         warnings.append("every mask is empty: the cameras see nothing of the segmented OOI")
     n_full = int((cover > 0.95).sum())
     if n_full:
         warnings.append(f"{n_full} masks cover >95% of their image: the segmentation likely "
                         f"kept background; do not trust these masks")
     metrics = None
-    if capture.has_gt_masks:
-        metrics = scene_metrics(masks, {v.key: v.gt_mask for v in views})
+    if capture.has_gt_masks and masks:
+        metrics = scene_metrics(masks, {v.key: v.gt_mask for v in views if v.key in masks})
     return SegmentationResult(cloud, mesh, masks, counts, params, timings, warnings, cfg,
                               metrics, stage_clouds)
+
+
+def cloud_change(prev_xyz: np.ndarray, new_xyz: np.ndarray,
+                 tol: Optional[float] = None) -> dict:
+    """How much an OOI cloud changed between two segmentations (e.g. whether a live node
+    should re-render its masks): ``added`` = share of the new points farther than ``tol``
+    from every previous point, ``removed`` = share of the previous points farther than
+    ``tol`` from every new point, ``changed`` = the larger of the two (0 = same surface).
+
+    ``tol`` defaults to twice the new cloud's median nearest-neighbour spacing, so it follows
+    the cloud's scale and density.
+    """
+    from scipy.spatial import cKDTree
+    a = np.asarray(prev_xyz, float).reshape(-1, 3)
+    b = np.asarray(new_xyz, float).reshape(-1, 3)
+    if len(a) == 0 or len(b) == 0:
+        same = len(a) == len(b)
+        return {"added": 0.0 if same else float(len(b) > 0),
+                "removed": 0.0 if same else float(len(a) > 0),
+                "changed": 0.0 if same else 1.0, "tol": 0.0}
+    tb = cKDTree(b)
+    if tol is None:
+        d, _ = tb.query(b, k=2) if len(b) > 1 else (np.zeros((1, 2)), None)
+        tol = 2.0 * float(np.median(d[:, 1]))
+    added = float(np.mean(cKDTree(a).query(b)[0] > tol))
+    removed = float(np.mean(tb.query(a)[0] > tol))
+    return {"added": added, "removed": removed, "changed": max(added, removed),
+            "tol": float(tol)}

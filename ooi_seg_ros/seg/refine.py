@@ -105,6 +105,8 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
     out, refined, rejected = {}, 0, 0
     floor_cache = {} if floor_cache is None else floor_cache
     for j, v in enumerate(views):
+        if v.key not in masks:  # a context view only (neighbour of the plane check)
+            continue
         m = masks[v.key]
         if m.sum() < 16:
             out[v.key] = m
@@ -199,6 +201,8 @@ def point_support(xyz: np.ndarray, masks: dict[str, np.ndarray], views: list[Vie
     inside = np.zeros(len(xyz))
     seen = np.zeros(len(xyz))
     for v in views:
+        if v.key not in masks:
+            continue
         uv, z = project_distorted(xyz, v.camera, v.pose)
         c = v.camera
         ui, vi = np.rint(uv[:, 0]), np.rint(uv[:, 1])
@@ -212,6 +216,10 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                  background: SfmCloud, cfg: RefineConfig, plane: Optional[np.ndarray] = None,
                  target: Optional[np.ndarray] = None) -> tuple[dict, dict]:
     """GrabCut-refined masks {key: bool [H,W]} and counts of refined/rejected views.
+
+    Only the views with a key in ``masks`` are refined (the result holds just those); the
+    other ``views`` are context (neighbours of the plane check). A view's result does not
+    depend on which other views are refined.
 
     ``fg_seeds="consistent"`` runs two passes: the first seeded by the observations; every
     OOI point is then scored by the share of views whose first-pass mask holds its projection,
@@ -240,7 +248,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
             support = point_support(xyz, first, views)
             xyz = xyz[support >= cfg.consistency]
             params["consistent_points"] = int(len(xyz))
-        fg = [_in_frame(project_distorted(xyz, v.camera, v.pose), v) for v in views]
+        fg = [_in_frame(project_distorted(xyz, v.camera, v.pose), v) if v.key in masks
+              else np.zeros((0, 2), np.float32) for v in views]
         init = first if cfg.fg_seeds == "consistent" and cfg.second_init == "first" else masks
         out, refined, rejected = _grabcut_pass(init, views, fg, bg_obs, cfg, floor, cache)
     else:
