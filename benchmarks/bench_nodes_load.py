@@ -41,8 +41,8 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from ooi_seg_ros import msgconv
-from ooi_seg_ros.nodes.common import (latched_qos, limit_heap_growth, reliable_qos,
-                                      sensor_qos)
+from ooi_seg_ros.nodes.common import (latched_qos, limit_heap_growth, mask_is_provisional,
+                                      reliable_qos, sensor_qos)
 from ooi_seg_ros.nodes.segmentation_node import SegmentationNode
 from ooi_seg_ros.nodes.sfm_node import SfmNode
 from ooi_seg_ros.sim import simulate_capture
@@ -90,7 +90,8 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
             feeder.create_publisher(PoseStamped, "pose", sensor_qos()),
             feeder.create_publisher(Image, "image", sensor_qos()))
     nodes = [feeder]
-    got = {"images": 0, "ooi": [], "mask": {}, "sfm": {}}  # mask: stamp -> [first, last, n]
+    got = {"images": 0, "ooi": [], "mask": {}, "sfm": {},  # mask: stamp -> arrival times
+           "mask_provisional": {}}
     if with_nodes:
         sfm = SfmNode(context=ctx, namespace=ns)
         seg = SegmentationNode(context=ctx, namespace=ns, parameter_overrides=[
@@ -111,6 +112,9 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
             t = time.monotonic()
             k = msgconv.stamp_to_ns(m.header.stamp)
             got["mask"].setdefault(k, []).append(t)
+            # which of a keyframe's masks were provisional, in arrival order (the kind travels
+            # in the message's frame_id)
+            got["mask_provisional"].setdefault(k, []).append(mask_is_provisional(m))
             vi = stats.get("view_of", {}).get(k)
             gt = capture.views[vi].gt_mask if vi is not None else None
             if gt is not None:
@@ -119,22 +123,6 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
                     float((pred & gt).sum() / max((pred | gt).sum(), 1)))
 
         feeder.create_subscription(Image, "ooi/mask", on_mask, reliable_qos(100))
-        # which of a keyframe's masks were provisional, in publication order (one publisher,
-        # reliable: the k-th mask received for a stamp is the k-th published)
-        got["mask_provisional"] = {}
-        tl = threading.local()
-        node_publish_mask, wire_publish = seg._publish_mask, seg.pub_mask.publish
-
-        def publish_mask(mask, stamp_ns, full, provisional_from=None):
-            tl.provisional = provisional_from is not None
-            return node_publish_mask(mask, stamp_ns, full, provisional_from)
-
-        def publish(msg):
-            got["mask_provisional"].setdefault(msgconv.stamp_to_ns(msg.header.stamp), []).append(
-                getattr(tl, "provisional", False))
-            wire_publish(msg)
-
-        seg._publish_mask, seg.pub_mask.publish = publish_mask, publish
     else:
         feeder.create_subscription(Image, "image",
                                    lambda m: got.__setitem__("images", got["images"] + 1),

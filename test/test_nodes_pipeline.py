@@ -118,6 +118,13 @@ def test_nodes_on_demo_bag(tmp_path, capsys):
         assert seg.last_error is None, seg.last_error
         assert got["ooi"] and seg.runs == 0
         assert sorted(seg.provisional_stamps()) == sorted(seg.keyframes)
+        # the training node tells the provisional masks apart: nothing to train on yet
+        assert _wait(lambda: len(trn.provisional) >= n_kf, 60), trn.diag.snapshot()
+        tcli = feeder.create_client(Trigger, f"{ns}/training_node/train")
+        assert tcli.wait_for_service(timeout_sec=10)
+        fut = tcli.call_async(Trigger.Request())
+        assert _wait(fut.done, 30) and not fut.result().success, fut.result()
+        assert f"{n_kf} with a provisional mask only" in fut.result().message, fut.result()
 
         # the ~/segment service of the segmentation node
         cli = feeder.create_client(Trigger, f"{ns}/segmentation_node/segment")
@@ -164,8 +171,6 @@ def test_nodes_on_demo_bag(tmp_path, capsys):
 
         # training on the ~/train service
         assert _wait(lambda: len(trn.masks) >= n_kf and trn.ooi_xyz is not None, 60)
-        tcli = feeder.create_client(Trigger, f"{ns}/training_node/train")
-        assert tcli.wait_for_service(timeout_sec=10)
         fut = tcli.call_async(Trigger.Request())
         assert _wait(fut.done, 30) and fut.result().success, fut.result()
         assert _wait(lambda: got["splats"] or trn.diag.counters.get("error_training"), 900)

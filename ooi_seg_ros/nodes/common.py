@@ -49,6 +49,27 @@ def reliable_qos(depth: int = 10) -> QoSProfile:
                       durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 
 
+# ``ooi/mask`` carries two kinds of mask under one topic: *final* masks (a full segmentation
+# run's, refined) and *provisional* ones (the unrefined silhouette of the current OOI cloud,
+# published at once for keyframes no full run has covered yet). The kind travels in the
+# message itself, so that it cannot race the mask: a provisional mask's header.frame_id is
+# its camera frame with this suffix ("camera_optical_provisional"); a final mask's is the
+# plain camera frame. Consumers that train or evaluate on masks (training_node) keep final
+# masks only.
+MASK_FRAME = "camera_optical"
+PROVISIONAL_SUFFIX = "_provisional"
+
+
+def mask_frame_id(provisional: bool, frame: str = MASK_FRAME) -> str:
+    """header.frame_id of an ``ooi/mask`` message of that kind."""
+    return frame + PROVISIONAL_SUFFIX if provisional else frame
+
+
+def mask_is_provisional(msg) -> bool:
+    """Whether an ``ooi/mask`` message is a provisional mask (see ``PROVISIONAL_SUFFIX``)."""
+    return msg.header.frame_id.endswith(PROVISIONAL_SUFFIX)
+
+
 @dataclasses.dataclass
 class ParamSpec:
     """Description and valid range of one ROS parameter."""

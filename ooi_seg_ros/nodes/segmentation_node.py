@@ -51,8 +51,8 @@ from ..core.types import Capture, InputError, TriMesh, View
 from ..seg.masks import render_masks
 from ..seg.pipeline import SegmentationConfig, make_config, segment
 from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle,
-                     auto_image_budget_bytes, guarded, latched_qos, reliable_qos, run_node,
-                     upscale_mask)
+                     auto_image_budget_bytes, guarded, latched_qos, mask_frame_id,
+                     reliable_qos, run_node, upscale_mask)
 
 
 @dataclasses.dataclass
@@ -372,7 +372,8 @@ class SegmentationNode(Node):
         """
         cam, f = full
         mask = upscale_mask(np.asarray(mask, bool), f, cam.width, cam.height)
-        msg = msgconv.mask_to_image(mask, msgconv.ns_to_stamp(stamp_ns), "camera_optical")
+        msg = msgconv.mask_to_image(mask, msgconv.ns_to_stamp(stamp_ns),
+                                    mask_frame_id(provisional_from is not None))
         with self._mask_pub_lock:
             if self._mask_batch >= self.cfg.mask_qos_depth:
                 # the middleware keeps only mask_qos_depth masks: let the subscribers catch

@@ -4,8 +4,16 @@ Subscribes: ``keyframe/image``, ``keyframe/camera_info``, ``keyframe/pose`` (mat
 ``ooi/mask`` (mono8, stamp = keyframe stamp) and ``ooi/points`` (latched). Training starts on
 the ``~/train`` service (std_srvs/Trigger), or by itself once the OOI is stable
 (``auto_start``: the OOI cloud's size changed by less than ``stable_change`` over
-``stable_updates`` updates and every keyframe has a mask). Training runs in a worker thread with
-the same core code as ``ooi-seg train``.
+``stable_updates`` updates and every kept keyframe has a final mask). Training runs in a worker
+thread with the same core code as ``ooi-seg train``.
+
+Final masks only. ``ooi/mask`` carries the segmentation node's *provisional* masks (unrefined
+silhouettes of the current OOI cloud, header.frame_id ending in ``_provisional``, see
+``common.PROVISIONAL_SUFFIX``) as well as its *final* ones (a full run's). Provisional masks
+are recorded but never trained on: auto-start waits until every kept keyframe has a final
+mask, and ``~/train`` trains on the keyframes that have one, saying in its response how many
+keyframes were left out because their mask is still provisional or missing (diagnostics:
+``masks_final``, ``masks_provisional``). A provisional mask never replaces a final one.
 
 Publishes ``splats`` (PointCloud2 whose fields carry the Gaussians under the 3DGS PLY names:
 x y z f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3, latched), ``splat/render`` previews and
@@ -42,7 +50,8 @@ from ..core.types import Capture
 from ..train.gaussians import PLY_FIELDS, to_ply_array
 from ..train.trainer import TrainConfig, train
 from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle,
-                     auto_image_budget_bytes, guarded, latched_qos, reliable_qos, run_node)
+                     auto_image_budget_bytes, guarded, latched_qos, mask_is_provisional,
+                     reliable_qos, run_node)
 
 SPLAT_SKIP_FIELDS = ("nx", "ny", "nz")  # the PLY's unused normals are not published
 
@@ -133,7 +142,8 @@ class TrainingNode(Node):
         self.diag = Diagnostics(self)
         self.throttle = Throttle(self)
         self._lock = threading.Lock()
-        self.masks: dict[int, tuple] = {}  # stamp -> (packed bits, (H, W)) of a full mask
+        self.masks: dict[int, tuple] = {}  # stamp -> (packed bits, (H, W)) of a final mask
+        self.provisional: set[int] = set()  # stamps whose latest mask is provisional (no bits)
         budget = (int(self.cfg.image_budget_mb * 2 ** 20) if self.cfg.image_budget_mb > 0
                   else auto_image_budget_bytes())
         self.assembler = KeyframeAssembler(
@@ -184,6 +194,7 @@ class TrainingNode(Node):
     def _on_evict(self, stamp_ns: int) -> None:
         with self._lock:
             self.masks.pop(stamp_ns, None)
+            self.provisional.discard(stamp_ns)
 
     def _abs(self, topic: str) -> str:
         return self.resolve_topic_name(topic)
@@ -220,17 +231,52 @@ class TrainingNode(Node):
     def on_mask(self, msg: Image) -> None:
         stamp_ns = msgconv.stamp_to_ns(msg.header.stamp)
         self._record("ooi/mask", msg, stamp_ns)
-        mask = msgconv.image_to_mask(msg)
+        mask = msgconv.image_to_mask(msg)  # validates provisional masks too
+        if mask_is_provisional(msg):
+            with self.assembler.lock, self._lock:
+                if stamp_ns in self.masks:  # never replaces a final mask
+                    self.diag.count("masks_provisional_ignored")
+                else:
+                    self.provisional.add(stamp_ns)
+                self._bound_masks()
+            self._report_masks()
+            return
         packed = (np.packbits(mask, axis=None), mask.shape)
         with self.assembler.lock, self._lock:
             self.masks[stamp_ns] = packed
-            # a mask waits for its keyframe, but masks of evicted/unknown stamps do not pile up
-            extra = len(self.masks) - len(self.assembler.keyframes) - self.assembler.max_pending
-            for k in [k for k in self.masks if k not in self.assembler.keyframes][:max(extra, 0)]:
-                del self.masks[k]
-                self.diag.count("dropped_mask_without_keyframe")
-        self.diag.set("masks", len(self.masks))
+            self.provisional.discard(stamp_ns)
+            self._bound_masks()
+        self._report_masks()
         self._maybe_auto_start()
+
+    def _bound_masks(self) -> None:
+        """Masks wait for their keyframe, but masks of evicted/unknown stamps do not pile up
+        (caller holds ``self.assembler.lock`` and ``self._lock``)."""
+        kept = self.assembler.keyframes
+        for store in (self.masks, self.provisional):
+            extra = len(store) - len(kept) - self.assembler.max_pending
+            if extra > 0:
+                for k in [k for k in store if k not in kept][:extra]:
+                    if isinstance(store, dict):
+                        del store[k]
+                    else:
+                        store.discard(k)
+                    self.diag.count("dropped_mask_without_keyframe")
+
+    def mask_counts(self) -> tuple[int, int, int]:
+        """(final, provisional, missing): kept keyframes by the kind of their latest mask."""
+        with self.assembler.lock, self._lock:
+            kept = list(self.keyframes)
+            final = sum(1 for k in kept if k in self.masks)
+            prov = sum(1 for k in kept if k not in self.masks and k in self.provisional)
+        return final, prov, len(kept) - final - prov
+
+    def _report_masks(self) -> None:
+        final, prov, missing = self.mask_counts()
+        self.diag.set("masks", final)
+        self.diag.set("masks_final", final)
+        self.diag.set("masks_provisional", prov)
+        self.diag.set("masks_missing", missing)
 
     @guarded("dropped_ooi_points")
     def on_ooi_points(self, msg: PointCloud2) -> None:
@@ -249,19 +295,23 @@ class TrainingNode(Node):
         return max(s) - min(s) <= self.cfg.stable_change * max(s)
 
     def ready(self) -> tuple[bool, str]:
-        with self.assembler.lock, self._lock:
-            n = sum(1 for k in self.keyframes if k in self.masks)
+        """Whether training can start, and why (counts of final / provisional / no masks)."""
+        n, prov, missing = self.mask_counts()
+        why = f"{n} keyframes with final masks"
+        if prov or missing:
+            why += (f"; left out: {prov} with a provisional mask only, {missing} without a "
+                    f"mask")
         if self.ooi_xyz is None:
             return False, "no OOI cloud received yet"
         if n < self.cfg.min_keyframes:
-            return False, f"{n} keyframes with masks, need {self.cfg.min_keyframes}"
-        return True, f"{n} keyframes with masks"
+            return False, f"{why}; need {self.cfg.min_keyframes} with final masks"
+        return True, why
 
     def _maybe_auto_start(self) -> None:
+        """Starts training once the OOI is stable and every kept keyframe has a final mask."""
         if self.cfg.auto_start and self.runs == 0 and self.ooi_is_stable() and self.ready()[0]:
-            with self.assembler.lock, self._lock:
-                all_masked = all(k in self.masks for k in self.keyframes)
-            if all_masked:
+            _n, prov, missing = self.mask_counts()
+            if prov == 0 and missing == 0:
                 self.start()
 
     def start(self) -> bool:
