@@ -195,6 +195,81 @@ def _check_view(view: View) -> None:
                          "quaternion?); normalise orientations before SfM")
 
 
+@dataclass
+class KeyframeFeatures:
+    """The SIFT features of one keyframe, as ``add_keyframe`` uses them.
+
+    Computed by ``IncrementalSfM.extract`` in the calling thread or by a worker process
+    (``sfm.prefetch``); both run ``extract_features``, so the results are identical.
+    """
+
+    xy: np.ndarray  # [n,2] float64 pixel coords (ROS convention: pixel centres at integers)
+    desc: np.ndarray  # [n,128] uint8 unit-length SIFT x 512
+    rgb: np.ndarray  # [n,3] uint8 colour at each keypoint
+    first_octave: int  # SIFT's first octave for this keyframe (-1 upsampled, 0 native)
+    extract_s: float = 0.0  # wall seconds of the extraction
+    extract_cpu_s: float = 0.0  # CPU seconds of the extraction (of the thread that ran it)
+
+
+def sift_first_octave(config: IncrementalConfig, width: int, height: int) -> int:
+    """SIFT's first octave for a ``width`` x ``height`` keyframe: -1 (upsampled) or 0.
+
+    The upsampled octave holds 4x the image's pixels and costs most of the extraction; it is
+    used only while it stays within ``config.sift_upsample_max_pixels`` (0: always).
+    """
+    budget = config.sift_upsample_max_pixels
+    return -1 if budget <= 0 or 4 * width * height <= budget else 0
+
+
+def make_sift(config: IncrementalConfig, first_octave: int):
+    """A pycolmap CPU SIFT extractor with ``config``'s options (one thread)."""
+    import pycolmap
+    opt = pycolmap.FeatureExtractionOptions()
+    opt.use_gpu = False
+    opt.num_threads = 1
+    opt.max_image_size = 100000
+    opt.sift.max_num_features = config.max_features
+    opt.sift.first_octave = first_octave
+    opt.sift.peak_threshold = config.peak_threshold
+    with warnings.catch_warnings():  # pycolmap.Sift takes numpy images directly
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return pycolmap.Sift(opt, pycolmap.Device.cpu)
+
+
+def extract_features(extractor, img: np.ndarray, cam: CameraIntrinsics, key: str = "",
+                     first_octave: int = -1) -> KeyframeFeatures:
+    """SIFT keypoints, quantised descriptors and colours of the RGB image ``img`` [H,W,3].
+
+    ``extractor`` is ``make_sift(config, first_octave)``; ``first_octave`` is recorded only.
+
+    Pure (no SfM state): what a worker process runs for the pipelined path. Several
+    orientations at one location keep the first; pixel coordinates move from COLMAP's
+    convention (centres at +0.5) to ROS's.
+    """
+    t0, c0 = time.perf_counter(), time.thread_time()
+    if img is None or img.ndim != 3 or img.shape[2] != 3:
+        raise InputError(f"view {key}: image must be RGB [H,W,3]")
+    if img.shape[0] != cam.height or img.shape[1] != cam.width:
+        raise InputError(f"view {key}: image {img.shape[1]}x{img.shape[0]} does not "
+                         f"match camera_info {cam.width}x{cam.height}")
+    grey = np.ascontiguousarray(
+        (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]).astype(np.uint8))
+    kp, desc = extractor.extract(grey)
+    kp = np.asarray(kp, float).reshape(-1, 4)
+    desc = np.asarray(desc, np.float32).reshape(len(kp), 128)
+    if len(kp):  # several orientations at one location: keep the first
+        _, first = np.unique(np.round(kp[:, :2], 2), axis=0, return_index=True)
+        first = np.sort(first)
+        kp, desc = kp[first], desc[first]
+    xy = kp[:, :2] - 0.5  # COLMAP pixel centres at +0.5 -> ROS
+    n = np.linalg.norm(desc, axis=1, keepdims=True)
+    desc = np.clip(np.round(desc / np.maximum(n, 1e-12) * 512.0), 0, 255).astype(np.uint8)
+    ij = np.clip(np.round(xy).astype(int), 0, [cam.width - 1, cam.height - 1])
+    rgb = img[ij[:, 1], ij[:, 0]]
+    return KeyframeFeatures(xy, desc, rgb, first_octave, time.perf_counter() - t0,
+                            time.thread_time() - c0)
+
+
 class IncrementalSfM:
     """Known-pose SfM that grows keyframe by keyframe; ``cloud()`` may be called any time."""
 
@@ -212,55 +287,25 @@ class IncrementalSfM:
 
     # -- features ----------------------------------------------------------------------------
     def first_octave(self, width: int, height: int) -> int:
-        """SIFT's first octave for a ``width`` x ``height`` keyframe: -1 (upsampled) or 0.
-
-        The upsampled octave holds 4x the image's pixels and costs most of the extraction; it
-        is used only while it stays within ``sift_upsample_max_pixels``.
-        """
-        budget = self.config.sift_upsample_max_pixels
-        return -1 if budget <= 0 or 4 * width * height <= budget else 0
+        """SIFT's first octave for a ``width`` x ``height`` keyframe (``sift_first_octave``)."""
+        return sift_first_octave(self.config, width, height)
 
     def _extractor(self, first_octave: int = -1):
         if first_octave not in self._sift:
-            import pycolmap
-            opt = pycolmap.FeatureExtractionOptions()
-            opt.use_gpu = False
-            opt.num_threads = 1
-            opt.max_image_size = 100000
-            opt.sift.max_num_features = self.config.max_features
-            opt.sift.first_octave = first_octave
-            opt.sift.peak_threshold = self.config.peak_threshold
-            with warnings.catch_warnings():  # pycolmap.Sift takes numpy images directly
-                warnings.simplefilter("ignore", DeprecationWarning)
-                self._sift[first_octave] = pycolmap.Sift(opt, pycolmap.Device.cpu)
+            self._sift[first_octave] = make_sift(self.config, first_octave)
         return self._sift[first_octave]
 
-    def _features(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        img = view.get_image()
-        if img is None or img.ndim != 3 or img.shape[2] != 3:
-            raise InputError(f"view {view.key}: image must be RGB [H,W,3]")
+    def extract(self, view: View) -> KeyframeFeatures:
+        """Checks ``view`` and extracts its SIFT features in this thread (no SfM state changes).
+
+        ``add_keyframe(view, features)`` accepts the result; a worker process can compute the
+        same with ``extract_features`` (see ``sfm.prefetch``) while this object matches.
+        """
+        _check_view(view)
         cam = view.camera
-        if img.shape[0] != cam.height or img.shape[1] != cam.width:
-            raise InputError(f"view {view.key}: image {img.shape[1]}x{img.shape[0]} does not "
-                             f"match camera_info {cam.width}x{cam.height}")
-        grey = np.ascontiguousarray(
-            (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]).astype(np.uint8))
-        kp, desc = self._extractor(self.first_octave(cam.width, cam.height)).extract(grey)
-        kp = np.asarray(kp, float).reshape(-1, 4)
-        desc = np.asarray(desc, np.float32).reshape(len(kp), 128)
-        if len(kp) == 0:
-            self.counts["keyframes_without_features"] += 1
-            LOG.warning("keyframe %s: no SIFT features (textureless or out of focus)", view.key)
-        if len(kp):  # several orientations at one location: keep the first
-            _, first = np.unique(np.round(kp[:, :2], 2), axis=0, return_index=True)
-            first = np.sort(first)
-            kp, desc = kp[first], desc[first]
-        xy = kp[:, :2] - 0.5  # COLMAP pixel centres at +0.5 -> ROS
-        n = np.linalg.norm(desc, axis=1, keepdims=True)
-        desc = np.clip(np.round(desc / np.maximum(n, 1e-12) * 512.0), 0, 255).astype(np.uint8)
-        ij = np.clip(np.round(xy).astype(int), 0, [cam.width - 1, cam.height - 1])
-        rgb = img[ij[:, 1], ij[:, 0]]
-        return xy, desc, rgb
+        octave = self.first_octave(cam.width, cam.height)
+        return extract_features(self._extractor(octave), view.get_image(), cam, view.key,
+                                octave)
 
     # -- pairs --------------------------------------------------------------------------------
     def _depth_guess(self, kf: _Keyframe) -> float:
@@ -351,15 +396,28 @@ class IncrementalSfM:
         return m, d_ab[idx_a[ok], 0]
 
     # -- public -------------------------------------------------------------------------------
-    def add_keyframe(self, view: View) -> dict:
-        """Extract, pair, match and merge tracks for one keyframe; returns per-step stats."""
+    def add_keyframe(self, view: View, features: Optional[KeyframeFeatures] = None) -> dict:
+        """Extract, pair, match and merge tracks for one keyframe; returns per-step stats.
+
+        ``features``: the keyframe's ``KeyframeFeatures`` computed elsewhere (a worker process,
+        ``sfm.prefetch``) with the same config; None extracts them here. Either way the
+        result is the same.
+        """
         _check_view(view)
         if self.keyframes and view.stamp_ns < self.keyframes[-1].view.stamp_ns:
             self.counts["dropped_stamp_backwards"] += 1
             LOG.warning("keyframe %s dropped: stamp goes backwards", view.key)
             return {"dropped": "stamp_backwards"}
         t0 = time.perf_counter()
-        xy, desc, rgb = self._features(view)
+        if features is None:
+            features = self.extract(view)
+            extract_s = time.perf_counter() - t0
+        else:
+            extract_s = features.extract_s  # spent elsewhere, in parallel with this thread
+        xy, desc, rgb = features.xy, features.desc, features.rgb
+        if len(xy) == 0:
+            self.counts["keyframes_without_features"] += 1
+            LOG.warning("keyframe %s: no SIFT features (textureless or out of focus)", view.key)
         R_cw, t_cw = view.pose.world_to_cam()
         kf = _Keyframe(view, xy, undistort_normalized(xy, view.camera), desc, rgb,
                        self._n_features, R_cw, t_cw)
@@ -386,16 +444,16 @@ class IncrementalSfM:
             self._refresh()  # the points as of this keyframe's descriptor matches
             n_guided = self._guided_matches(len(self.keyframes) - 1, np.concatenate(match_d))
         t2 = time.perf_counter()
-        self.times["features_s"] += t1 - t0
+        self.times["features_s"] += extract_s
         self.times["matching_s"] += t2 - t1
         self.counts["keyframes"] += 1
         self.counts["verified_matches"] += n_matches
         self.counts["guided_matches"] += n_guided
         return {"key": view.key, "features": int(len(xy)),
-                "sift_first_octave": self.first_octave(view.camera.width, view.camera.height),
+                "sift_first_octave": features.first_octave,
                 "pairs": len(pairs),
                 "verified_matches": int(n_matches), "guided_matches": int(n_guided),
-                "features_s": t1 - t0, "matching_s": t2 - t1}
+                "features_s": extract_s, "matching_s": t2 - t1}
 
     def _guided_matches(self, k: int, match_d: np.ndarray) -> int:
         """Extend known points into keyframe ``k`` by projection (guided matching).
