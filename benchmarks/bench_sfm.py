@@ -17,6 +17,20 @@ SIFT contrast threshold.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_sfm.py \
         --cases aircraft:60:320x240 tabletop:60:320x240
+
+``--stream RATE ...`` measures throughput instead: the keyframes are fed to the serial path
+(extract, match, triangulate, query the cloud, one keyframe after the other) and to the
+pipelined one (``sfm.prefetch.PipelinedSfM``: SIFT of the next keyframes in a worker process
+while the current one is matched), alternately, in the same run. RATE 0 feeds a keyframe
+whenever the path can take one (throughput = what it sustains); RATE > 0 makes keyframe i
+arrive at i / RATE seconds (a drone's keyframe clock). Printed per path: keyframes per second
+(first arrival to last cloud update), latency from arrival to the cloud holding the keyframe
+(median / p95 / max), CPU seconds per keyframe (this process plus the worker process; and this
+process alone), the largest backlog (keyframes arrived but not yet taken), the load average, and
+whether the pipelined cloud equals the serial one bit for bit. Timing runs go under the lock:
+
+    flock /tmp/ooi_timing.lock env OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_sfm.py \
+        --cases aircraft:60:640x480 tabletop:60:640x480 aircraft:60:320x240 --stream 0 1
 """
 
 from __future__ import annotations
@@ -101,6 +115,104 @@ def run_case(scene: str, n_views: int, w: int, h: int, seed: int, guided: bool,
     return out
 
 
+def _proc_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (Linux /proc)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def stream_run(views, pipelined: bool, rate: float, ahead: int = 2) -> dict:
+    """Feeds ``views`` to the serial or pipelined path (see the module doc); timing + cloud."""
+    from ooi_seg_ros.sfm.incremental import IncrementalConfig, IncrementalSfM
+    from ooi_seg_ros.sfm.prefetch import PipelinedSfM
+
+    sfm = IncrementalSfM(IncrementalConfig())
+    pipe = PipelinedSfM(sfm, ahead=ahead if pipelined else 1, workers=1 if pipelined else 0)
+    # warm-up outside the clock (pure, no SfM state): SIFT set-up, the worker's imports
+    if pipelined:
+        v0 = views[0]
+        pipe._worker.submit(v0.get_image(), v0.camera, v0.key).result()
+        wpid = pipe._worker.proc.pid
+        wcpu0 = _proc_cpu_s(wpid)
+    else:
+        sfm.extract(views[0])
+    n = len(views)
+    arrival = [float("nan")] * n
+    done_t = [float("nan")] * n
+    load0 = os.getloadavg()[0]
+    c0 = time.process_time()
+    t0 = time.perf_counter()
+    if rate > 0:
+        arrival = [t0 + i / rate for i in range(n)]
+    nxt = done = backlog = 0
+    while done < n:
+        now = time.perf_counter()
+        while nxt < n and pipe.can_submit and (rate <= 0 or arrival[nxt] <= now):
+            if rate <= 0:
+                arrival[nxt] = now
+            pipe.submit(views[nxt])
+            nxt += 1
+        if rate > 0:
+            backlog = max(backlog, sum(1 for a in arrival[nxt:] if a <= now))
+        if pipe.pending:
+            pipe.add_next()
+            pipe.cloud()  # current after every keyframe, as the live node publishes it
+            done_t[done] = time.perf_counter()
+            done += 1
+        else:
+            time.sleep(max(0.0, arrival[nxt] - time.perf_counter()))
+    wall = done_t[-1] - arrival[0]
+    cpu_main = time.process_time() - c0
+    cpu_worker = _proc_cpu_s(wpid) - wcpu0 if pipelined else 0.0
+    cloud = pipe.cloud()
+    pipe.close()
+    lat = np.array(done_t) - np.array(arrival)
+    return {"kf_per_s": n / wall, "lat_med": float(np.median(lat)),
+            "lat_p95": float(np.percentile(lat, 95)), "lat_max": float(lat.max()),
+            "cpu_per_kf": (cpu_main + cpu_worker) / n, "cpu_main_per_kf": cpu_main / n,
+            "backlog": backlog, "load": (load0, os.getloadavg()[0]), "cloud": cloud,
+            "last_lag": float(lat[-1])}
+
+
+def stream_case(scene: str, n_views: int, w: int, h: int, seed: int, rates: list,
+                repeats: int, ahead: int = 2) -> list:
+    """Serial vs pipelined throughput rows of one capture at each rate (alternating order)."""
+    from ooi_seg_ros.sim import simulate_capture
+
+    views = simulate_capture(scene, n_views=n_views, width=w, height=h, seed=seed).capture.views
+    for v in views:
+        v.get_image()
+    rows = []
+    for rate in rates:
+        for rep in range(max(1, repeats)):
+            order = (False, True) if rep % 2 == 0 else (True, False)
+            res = {p: stream_run(views, p, rate, ahead) for p in order}
+            a, b = res[False]["cloud"], res[True]["cloud"]
+            same = all(np.array_equal(getattr(a, f), getattr(b, f))
+                       for f in ("xyz", "rgb", "error", "obs_ptr", "obs_view", "obs_xy"))
+            for p in (False, True):
+                r = res[p]
+                rows.append({"case": f"{scene} {n_views}x {w}x{h}", "rate": rate,
+                             "path": "pipelined" if p else "serial", "points": len(r["cloud"]),
+                             "same": same, **{k: v for k, v in r.items() if k != "cloud"}})
+            print(f"done {scene} {w}x{h} rate {rate} run {rep + 1}", flush=True)
+    return rows
+
+
+def print_stream(rows: list) -> None:
+    print(f"{'case':22s} {'rate':>4s} {'path':9s} {'kf/s':>5s} {'lat med':>7s} {'p95':>5s} "
+          f"{'max':>5s} {'cpu/kf':>6s} {'main':>5s} {'backlog':>7s} {'last lag':>8s} "
+          f"{'load':>9s} {'points':>6s} same")
+    for r in rows:
+        rate = "max" if r["rate"] <= 0 else f"{r['rate']:g}"
+        print(f"{r['case']:22s} {rate:>4s} {r['path']:9s} {r['kf_per_s']:5.2f} "
+              f"{r['lat_med']:7.2f} {r['lat_p95']:5.2f} {r['lat_max']:5.2f} "
+              f"{r['cpu_per_kf']:6.2f} {r['cpu_main_per_kf']:5.2f} {r['backlog']:7d} "
+              f"{r['last_lag']:8.2f} {r['load'][0]:4.1f}-{r['load'][1]:4.1f} {r['points']:6d} "
+              f"{'yes' if r['same'] else 'NO'}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=["aircraft:60:320x240", "tabletop:60:320x240"],
@@ -114,8 +226,23 @@ def main() -> int:
     ap.add_argument("--native-peak", type=float, default=0.0,
                     help="SIFT peak_threshold of the inc_nat row (default: the config's)")
     ap.add_argument("--repeats", type=int, default=0,
-                    help="time the incremental path this many more times per case (spread)")
+                    help="time the incremental path this many more times per case (spread); "
+                         "with --stream: runs per path and rate (at least 1)")
+    ap.add_argument("--stream", nargs="+", type=float, metavar="RATE",
+                    help="throughput mode: serial vs pipelined at these keyframe rates in Hz "
+                         "(0 = as fast as each path takes them)")
+    ap.add_argument("--ahead", type=int, default=2,
+                    help="--stream: keyframes the pipelined path extracts ahead at most")
     args = ap.parse_args()
+    if args.stream:
+        rows = []
+        for c in args.cases:
+            scene, n, size = c.split(":")
+            w, h = (int(x) for x in size.split("x"))
+            rows += stream_case(scene, int(n), w, h, args.seed, args.stream, args.repeats,
+                                args.ahead)
+        print_stream(rows)
+        return 0
     rows = []
     for c in args.cases:
         scene, n, size = c.split(":")

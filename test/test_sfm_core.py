@@ -2,6 +2,7 @@
 
 import copy
 import json
+import os
 
 import numpy as np
 import pycolmap
@@ -14,6 +15,7 @@ from ooi_seg_ros.sfm.export import write_colmap_model, write_ply
 from ooi_seg_ros.sfm.incremental import IncrementalConfig, IncrementalSfM, undistort_normalized
 from ooi_seg_ros.sfm.keyframes import KeyframeConfig, KeyframeSelector, laplacian_variance
 from ooi_seg_ros.sfm.pipeline import SfmConfig, reconstruct
+from ooi_seg_ros.sfm.prefetch import PipelinedSfM
 from ooi_seg_ros.sim import simulate_capture
 
 N_VIEWS = 16
@@ -122,6 +124,76 @@ def test_large_keyframes_skip_the_upsampled_sift_octave(sim, built):
     assert 10 < len(cloud) < len(plain)
     d = np.abs(sim.scene.distance_to_surface(cloud.xyz))
     assert np.median(d) < 0.01 * sim.scene.summary()["scale"]
+
+
+def _same_cloud(a, b) -> bool:
+    return len(a.views) == len(b.views) and all(
+        np.array_equal(getattr(a, f), getattr(b, f))
+        for f in ("xyz", "rgb", "error", "obs_ptr", "obs_view", "obs_xy"))
+
+
+def test_pipelined_extraction_gives_the_serial_cloud_bit_for_bit(sim, built):
+    serial, half, full = built
+    with PipelinedSfM(IncrementalSfM(IncrementalConfig()), ahead=2, workers=1) as pipe:
+        worker_pid = pipe._worker.proc.pid
+        in_flight = []
+        for i, stats in enumerate(pipe.run(sim.capture.views)):
+            in_flight.append(pipe.pending)
+            assert stats["features_cpu_s"] > 0  # extracted by the worker process
+            if i == N_VIEWS // 2 - 1:
+                assert _same_cloud(pipe.cloud(), half)  # the same cloud at any time
+        assert max(in_flight) <= 2  # at most `ahead` keyframes extracted in front
+        assert _same_cloud(pipe.cloud(), full)
+        assert _same_cloud(pipe.cloud(conditioned=False), serial.cloud(conditioned=False))
+        rep = pipe.report()
+        assert rep["feature_workers"] == 1 and rep["keyframes"] == N_VIEWS
+        assert "feature_worker_failures" not in rep["counts"]
+    assert pipe._worker is None
+    with pytest.raises(ProcessLookupError):  # close() ended (and reaped) the worker process
+        os.kill(worker_pid, 0)
+
+
+def test_pipeline_bounds_keyframes_in_flight_and_survives_its_worker(sim, built):
+    views = sim.capture.views[:6]
+    serial = IncrementalSfM()
+    for v in views:
+        serial.add_keyframe(v)
+    with PipelinedSfM(ahead=2, workers=1) as pipe:
+        pipe.submit(views[0])
+        pipe.submit(views[1])
+        assert pipe.pending == 2 and not pipe.can_submit
+        with pytest.raises(RuntimeError, match="in flight"):
+            pipe.submit(views[2])
+        pipe.add_next()
+        pipe._worker.proc.kill()  # the worker dies with keyframe 1 in flight
+        pipe.submit(views[2])
+        for _ in range(2):
+            pipe.add_next()
+        assert pipe.workers == 0 and pipe.report()["counts"]["feature_worker_failures"] == 1
+        for stats in pipe.run(views[3:]):  # carries on in this thread
+            assert stats["features_cpu_s"] is None
+        assert _same_cloud(pipe.cloud(), serial.cloud())
+
+
+def test_pipeline_reports_a_bad_keyframe_and_goes_on(sim):
+    views = [copy.copy(v) for v in sim.capture.views[:4]]
+    views[1].image = views[1].get_image()[:-8]  # does not match its camera_info
+    with PipelinedSfM(ahead=2, workers=1) as pipe:
+        pipe.submit(views[0])
+        pipe.submit(views[1])
+        pipe.add_next()
+        with pytest.raises(InputError, match="does not match camera_info"):
+            pipe.add_next()  # raised by the worker, re-raised here
+        pipe.submit(views[2])
+        pipe.submit(views[3])
+        pipe.add_next()
+        pipe.add_next()
+        assert pipe.report()["keyframes"] == 3 and len(pipe.cloud()) > 0
+        bad = copy.copy(views[0])
+        bad.pose = Pose(bad.pose.R * 1.3, bad.pose.t)
+        with pytest.raises(InputError, match="orthonormal"):  # checked before it is queued
+            pipe.submit(bad)
+        assert pipe.pending == 0
 
 
 def test_export_roundtrips_through_pycolmap(built, tmp_path):

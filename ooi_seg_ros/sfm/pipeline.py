@@ -20,6 +20,7 @@ from ..core.types import Capture, InputError, SfmCloud
 from .incremental import IncrementalConfig, IncrementalSfM
 from .keyframes import KeyframeConfig, KeyframeSelector
 from .mapping import MappingConfig, map_image_folder
+from .prefetch import PipelinedSfM
 
 LOG = logging.getLogger(__name__)
 
@@ -35,6 +36,10 @@ class SfmConfig:
     bundle_adjust: bool = False  # refine the points with pycolmap BA (poses fixed)
     refine_poses: bool = False  # with bundle_adjust: refine the keyframe poses too
     progress: bool = True  # print a progress bar on stderr
+    feature_workers: int = -1  # processes extracting SIFT ahead of the matching (keyframe k+1
+    # while k is matched; same cloud, ~max instead of sum of the two costs): 0 = serial,
+    # -1 = 1 where 2+ CPU cores are usable, else 0
+    features_ahead: int = 2  # keyframes extracted ahead at most (bounds the images in flight)
 
 
 class Progress:
@@ -108,11 +113,12 @@ def reconstruct(capture: Capture, config: Optional[SfmConfig] = None,
                          "must move around the object (or lower keyframes.translation_frac)")
     sfm = IncrementalSfM(cfg.incremental, scene_scale=scale)
     bar = Progress("sfm keyframes", len(keyframes), cfg.progress)
-    for i, v in enumerate(keyframes):
-        sfm.add_keyframe(v)
-        bar.update(i + 1)
+    workers = None if cfg.feature_workers < 0 else cfg.feature_workers
+    with PipelinedSfM(sfm, ahead=cfg.features_ahead, workers=workers) as pipe:
+        for i, _ in enumerate(pipe.run(keyframes)):
+            bar.update(i + 1)
     cloud = sfm.cloud()
-    rep = sfm.report()
+    rep = pipe.report()
     report["incremental"] = rep
     report["times_s"].update(rep["times_s"])
     if len(cloud) == 0:
