@@ -140,6 +140,7 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
     pub_thread = threading.Thread(target=stream, args=(capture, fps, duration, pubs, stats,
                                                        stop), daemon=True)
     t0 = time.monotonic()
+    load0, cpu0 = os.getloadavg()[0], time.process_time()
     pub_thread.start()
     while pub_thread.is_alive():
         rss.append(proc.memory_info().rss / 2 ** 20)
@@ -232,6 +233,10 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
             "iou_last_provisional_mask": mask_iou(True),
             "iou_final_mask": mask_iou(False),
             "masks_final_published": segc.get("masks_published", 0),
+            "masks_final_reused": segc.get("masks_reused", 0),
+            "keyframes_without_final_mask": sum(
+                1 for k in seg.keyframes if not any(
+                    not p for p in got["mask_provisional"].get(k, []))),
             "provisional_mask_s": round(seg.diag.timings.get("provisional_mask", 0.0), 2),
         })
         c = sfm.diag.counters
@@ -265,6 +270,9 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
         seg.close()
     else:
         out["received_by_subscriber"] = got["images"]
+    out["wall_s"] = round(time.monotonic() - t0, 1)
+    out["process_cpu_s"] = round(time.process_time() - cpu0, 1)
+    out["loadavg_1min_start_end"] = (round(load0, 1), round(os.getloadavg()[0], 1))
     ex.shutdown(timeout_sec=5)
     for n in nodes:
         n.destroy_node()
@@ -354,11 +362,16 @@ def main() -> None:
     ap.add_argument("--no-fast-path", action="store_true",
                     help="segmentation node without provisional masks and cloud-only runs "
                          "(OOI cloud and masks only from full runs), for comparison")
+    ap.add_argument("--all-masks", action="store_true",
+                    help="every full run re-masks every keyframe (incremental_final false: "
+                         "the behaviour before incremental final runs), for comparison")
     ap.add_argument("--seg-param", action="append", default=[], metavar="NAME=VALUE",
                     help="extra segmentation_node parameter (YAML value; after --no-fast-path)")
     args = ap.parse_args()
     seg_params = tuple(Parameter(k, value=yaml.safe_load(v))
                        for k, v in (a.split("=", 1) for a in args.seg_param))
+    if args.all_masks:
+        seg_params = (Parameter("incremental_final", value=False),) + seg_params
     if not args.default_malloc:
         limit_heap_growth()  # as the nodes' main() does (run_node)
     w, h = (int(x) for x in args.size.split("x"))
@@ -412,6 +425,13 @@ def main() -> None:
           f"{mm(res['latency_first_mask_median_max_s'])} / "
           f"{mm(res['latency_final_mask_median_max_s'])} | {res['rss_mb_first']:.0f} / "
           f"{res['rss_mb_mid']:.0f} / {res['rss_mb_last']:.0f} |")
+    print(f"\nfull runs {res['full_runs']} (last {res['last_full_run_s']} s), final masks "
+          f"published {res['masks_final_published']}, kept from earlier runs "
+          f"{res['masks_final_reused']}, keyframes without a final mask "
+          f"{res['keyframes_without_final_mask']}; mask IoU last provisional "
+          f"{res['iou_last_provisional_mask']} / final {res['iou_final_mask']} (mean, count); "
+          f"wall {res['wall_s']} s, process CPU {res['process_cpu_s']} s, load average "
+          f"{res['loadavg_1min_start_end']} (start, end)")
 
 
 if __name__ == "__main__":

@@ -146,13 +146,35 @@ def test_cloud_first_provisional_masks_then_final(ctx):
         assert node.provisional_stamps() == stamps[10:]
         assert node.diag.counters["masks_provisional_refreshed"] == 2
         assert node.cloud_runs >= 2
-        # the next run makes every mask final
+        # the next run makes every mask final: it masks the two new keyframes, the old ones
+        # whose coarse silhouette changed and a rotating share of the rest; the others keep
+        # their final mask of the first run (not sent again)
         events.clear()
         assert node._busy.acquire(blocking=False)
         node._run()
         assert node.last_error is None, node.last_error
-        assert sorted(s for k, s, _m in events if k == "mask") == stamps
+        made = sorted(s for k, s, _m in events if k == "mask")
+        d = node.diag.values
+        assert set(stamps[10:]) <= set(made) and set(made) <= set(stamps)
+        assert int(d["masks_new_last_run"]) == 2
+        assert int(d["masks_refined_last_run"]) == len(made)
+        assert int(d["masks_reused_last_run"]) == 12 - len(made)
+        rest = 10 - int(d["masks_changed_last_run"])
+        assert int(d["masks_rotated_last_run"]) == int(np.ceil(0.2 * rest))
         assert node.provisional_stamps() == []
+        # a run with nothing new re-masks only the rotating share (nothing changed): the
+        # keyframes whose final masks are the oldest
+        oldest = sorted(stamps, key=lambda s: (node._final_src[s][0], stamps.index(s)))
+        events.clear()
+        assert node._busy.acquire(blocking=False)
+        node._run()
+        assert node.last_error is None, node.last_error
+        again = sorted(s for k, s, _m in events if k == "mask")
+        assert int(node.diag.values["masks_changed_last_run"]) == 0
+        assert again == sorted(oldest[:int(np.ceil(0.2 * 12))])
+        print(f"\n[incremental final masks] run 2 made {len(made)} of 12 masks "
+              f"({d['masks_changed_last_run']} changed, {d['masks_rotated_last_run']} rotated), "
+              f"run 3 (nothing new) made {len(again)}")
         print(f"\n[provisional masks] IoU vs ground truth: provisional {iou_prov:.3f} "
               f"(new keyframes {iou_new:.3f}), final {iou_final:.3f}; provisional vs final "
               f"{agree:.3f}")

@@ -20,7 +20,20 @@ masks (refinement, hull carve), so results are published in three tiers:
   ray-cast silhouette, without the per-view refinement and hull carve), published with the
   keyframe's stamp as soon as the keyframe is complete (``provisional_masks``). Diagnostics
   say which masks are provisional (``masks_provisional``, ``provisional_mask_stamps``).
-- The *final* masks of every keyframe of a full run, which replace the provisional ones.
+- The *final* masks of a full run, which replace the provisional ones. A run re-masks (mesh
+  splat + per-view refinement) only the keyframes that need it (``incremental_final``): those
+  with no final mask yet, those in whose view the coarse raw silhouette of the run's OOI cloud
+  differs from the one their final mask was made with by more than ``final_refresh_change``
+  (1 - IoU at ``change_check_side`` pixels), and ``final_refresh_share`` of the rest, those
+  whose final mask is oldest first, so that none is more than 1/share runs old. The others
+  keep the final mask an earlier run published (it stays final; it is not sent again).
+  Diagnostics: ``masks_new_last_run`` / ``_changed_`` / ``_rotated_`` / ``_refined_`` /
+  ``_reused_last_run``, and the ``masks_reused`` counter. The ``~/segment`` service and
+  ``incremental_final`` false re-mask every keyframe.
+
+Which mask is which travels in the mask message: a provisional mask's ``header.frame_id`` is
+``camera_optical_provisional``, a final one's ``camera_optical`` (``common.mask_frame_id``),
+so a consumer (the training node) can keep final masks only without racing another topic.
 
 Memory is bounded in bytes: keyframe images are kept downscaled by an integer factor derived
 from their size (``image_downscale``/``image_max_pixels``) within ``image_budget_mb``; beyond
@@ -51,8 +64,8 @@ from ..core.types import Capture, InputError, TriMesh, View
 from ..seg.masks import render_masks
 from ..seg.pipeline import SegmentationConfig, make_config, segment
 from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle,
-                     auto_image_budget_bytes, guarded, latched_qos, mask_frame_id,
-                     reliable_qos, run_node, upscale_mask)
+                     auto_image_budget_bytes, downscale_camera, guarded, latched_qos,
+                     mask_frame_id, reliable_qos, run_node, upscale_mask)
 
 
 @dataclasses.dataclass
@@ -113,6 +126,24 @@ class SegNodeConfig:
         default=0.5, metadata={"doc": "share of the wall time cloud-only runs may take: one "
                                       "of t seconds starts the next no sooner than t/duty "
                                       "after its own start"})
+    incremental_final: bool = dataclasses.field(
+        default=True, metadata={"doc": "automatic full runs refine the masks only of the "
+                                       "keyframes that need it (new ones, changed ones, a "
+                                       "rotating share); the others keep their final mask "
+                                       "(false = every run re-masks every keyframe; the "
+                                       "~/segment service always does)"})
+    final_refresh_change: float = dataclasses.field(
+        default=0.1, metadata={"doc": "with incremental_final: re-mask a keyframe when the "
+                                      "coarse silhouette of the new OOI cloud in its view "
+                                      "differs (1 - IoU) by more than this from the one its "
+                                      "final mask was made with"})
+    final_refresh_share: float = dataclasses.field(
+        default=0.2, metadata={"doc": "with incremental_final: share of the other keyframes "
+                                      "(longest-final first) re-masked each run anyway, so "
+                                      "no final mask is more than 1/share runs old (0 = none)"})
+    change_check_side: int = dataclasses.field(
+        default=96, metadata={"doc": "long side in pixels of the coarse silhouettes compared "
+                                     "for final_refresh_change"})
 
 
 SPECS = {
@@ -128,6 +159,12 @@ SPECS = {
     "cloud_max_duty": ParamSpec("share of the wall time cloud-only runs may take", 0.01, 1.0),
     "refresh_max_duty": ParamSpec("share of the wall time provisional refreshes may take",
                                   0.01, 1.0),
+    "incremental_final": ParamSpec("full runs re-mask only the keyframes that need it"),
+    "final_refresh_change": ParamSpec("coarse silhouette change (1 - IoU) that re-masks a "
+                                      "keyframe", 0.0, 1.0),
+    "final_refresh_share": ParamSpec("share of the other keyframes re-masked each run anyway",
+                                     0.0, 1.0),
+    "change_check_side": ParamSpec("long side of the coarse silhouettes compared", 16, 4096),
     "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
                                  read_only=True),
     "image_downscale": ParamSpec("integer downscale of kept images (0 = auto)", 0, 64,
@@ -147,6 +184,10 @@ SPECS = {
 
 class _PointStagesDone(Exception):
     """Raised from ``segment``'s ``on_cloud`` to end a cloud-only run after the point stages."""
+
+
+def _raise_done() -> None:
+    raise _PointStagesDone
 
 
 @dataclasses.dataclass
@@ -197,6 +238,8 @@ class SegmentationNode(Node):
         self._ooi: Optional[_OoiCloud] = None  # newest OOI cloud published
         self._mesh = None  # mesh of the last full run (mask renderer for masks.mode "mesh")
         self._final: set[int] = set()  # keyframes whose latest mask is a full run's
+        # keyframe -> (run number, coarse silhouette of the OOI cloud) its final mask came from
+        self._final_src: dict[int, tuple[int, np.ndarray]] = {}
         self._provisional: dict[int, int] = {}  # keyframe -> cloud seq its mask came from
         self._refresh_next_t = 0.0  # monotonic time before which no provisional mask refresh
         self._cloud_claimed = 0  # newest SfM cloud seq a run has taken up (full or cloud-only)
@@ -231,6 +274,9 @@ class SegmentationNode(Node):
     # ---- inputs -------------------------------------------------------------------------
     def _part(self, stamp_ns: int, key: str, value) -> None:
         if self.assembler.add(stamp_ns, key, value):
+            with self._lock:  # a repeated keyframe replaces the old one: its mask is stale
+                self._final.discard(stamp_ns)
+                self._final_src.pop(stamp_ns, None)
             self._new_since_run += 1
             self._last_input = time.monotonic()
             self._wake.set()  # a provisional mask for it
@@ -279,12 +325,15 @@ class SegmentationNode(Node):
                 and time.monotonic() - self._last_input >= idle):
             self.trigger()
 
-    def trigger(self) -> bool:
-        """Starts a segmentation run in the background unless one is running."""
+    def trigger(self, all_masks: bool = False) -> bool:
+        """Starts a segmentation run in the background unless one is running.
+
+        ``all_masks``: re-mask every keyframe even with ``incremental_final``.
+        """
         if not self._busy.acquire(blocking=False):
             return False
         self._new_since_run = 0
-        threading.Thread(target=self._run, daemon=True).start()
+        threading.Thread(target=self._run, args=(all_masks,), daemon=True).start()
         return True
 
     def _inputs(self, observations: bool = True) -> Optional[tuple]:
@@ -326,7 +375,7 @@ class SegmentationNode(Node):
         self._wake.set()  # keyframes still without a mask can get one now
         return True
 
-    def _run(self) -> None:
+    def _run(self, all_masks: bool = False) -> None:
         try:
             t0 = time.monotonic()
             got = self._inputs()
@@ -339,21 +388,51 @@ class SegmentationNode(Node):
             capture = Capture(views=views, source="ros")
             run_no = self.runs + 1
             self.diag.set_state(f"segmenting {len(cloud)} points over {len(views)} keyframes")
+            got_cloud = []
 
             def on_cloud(ooi) -> None:
+                got_cloud.append(ooi)
                 self.diag.timing("segment_cloud", time.monotonic() - t0)
                 self._publish_cloud(ooi.xyz, ooi.rgb, seq, cloud_stamp, f"run {run_no}")
 
-            result = segment(capture, cloud, self.seg_cfg, on_cloud=on_cloud)
+            keys = None
+            if self.cfg.incremental_final and not all_masks:
+                # the point stages first (deterministic: the same OOI cloud as the run's), to
+                # choose the keyframes whose masks this run makes
+                try:
+                    segment(capture, cloud, self.seg_cfg,
+                            on_cloud=lambda ooi: (on_cloud(ooi), _raise_done()))
+                except _PointStagesDone:
+                    pass
+                keys = self._keys_to_mask(views, got_cloud[0].xyz)
+                if not keys:  # every keyframe keeps its final mask (final_refresh_share 0)
+                    self.runs += 1
+                    self.last_run_newest_ns = max(v.stamp_ns for v in views)
+                    self.diag.set("masks_refined_last_run", 0)
+                    self.diag.set("masks_reused_last_run", len(views))
+                    self.diag.count("masks_reused", len(views))
+                    self.diag.set_state(f"run {self.runs}: no keyframe needed a new mask")
+                    return
+            sil = self._coarse_silhouettes(views, got_cloud[0].xyz) if got_cloud else None
+            result = segment(capture, cloud, self.seg_cfg,
+                             on_cloud=None if keys is not None else on_cloud,
+                             mask_keys=keys)
             self.last_result = result
             self.runs += 1
             self.last_run_newest_ns = max(v.stamp_ns for v in views)
             self.diag.timing("segment", time.monotonic() - t0)
-            self._publish(result, views, full, cloud_stamp)
+            if sil is None:
+                sil = self._coarse_silhouettes(views, result.ooi_cloud.xyz)
+            self._publish(result, views, full, cloud_stamp, sil)
+            reused = len(views) - len(result.masks)
+            self.diag.set("masks_refined_last_run", len(result.masks))
+            self.diag.set("masks_reused_last_run", reused)
+            self.diag.count("masks_reused", reused)
             for w in getattr(result, "warnings", []) or []:
                 self.throttle.warn("segwarn:" + w[:40], f"segmentation: {w}")
             self.diag.set_state(f"run {self.runs}: {len(result.ooi_cloud)} OOI points, "
-                                f"{len(result.masks)} masks")
+                                f"{len(result.masks)} masks made, {reused} final masks of "
+                                f"earlier runs kept")
         except Exception as exc:  # noqa: BLE001 — the node keeps running
             self.diag.count("error_segmentation")
             self.last_error = traceback.format_exc()
@@ -395,7 +474,10 @@ class SegmentationNode(Node):
             self._mask_batch += 1
         return True
 
-    def _publish(self, result, views: list[View], full: dict, cloud_stamp: int) -> None:
+    def _publish(self, result, views: list[View], full: dict, cloud_stamp: int,
+                 sil: dict) -> None:
+        """Publishes the run's mesh and the masks it made (keyframes it did not re-mask keep
+        their final mask of an earlier run; those are not sent again)."""
         stamp = msgconv.ns_to_stamp(cloud_stamp)
         if result.mesh is not None and not result.mesh.is_empty:
             self.pub_mesh.publish(msgconv.mesh_to_marker(result.mesh, stamp, self.cfg.frame_id))
@@ -406,11 +488,56 @@ class SegmentationNode(Node):
                 continue
             mask = result.masks.get(v.key)
             if mask is None:
-                self.diag.count("masks_missing")
+                with self._lock:
+                    kept = v.stamp_ns in self._final
+                if not kept:
+                    self.diag.count("masks_missing")
                 continue
-            self._publish_mask(mask, v.stamp_ns, full[v.stamp_ns])
+            if self._publish_mask(mask, v.stamp_ns, full[v.stamp_ns]):
+                with self._lock:
+                    self._final_src[v.stamp_ns] = (self.runs, sil.get(v.stamp_ns))
             self.diag.count("masks_published")
         self._report_provisional()
+
+    def _coarse_silhouettes(self, views: list[View], xyz: np.ndarray) -> dict:
+        """{stamp: bool [h, w]} the raw point silhouette of ``xyz`` in each view at
+        ``change_check_side`` pixels on the long side (the pipeline's own splat renderer,
+        no refinement): what tells whether a view's mask would change."""
+        small = []
+        for v in views:
+            f = max(1, int(round(max(v.camera.width, v.camera.height)
+                                 / self.cfg.change_check_side)))
+            small.append(View(v.key, v.stamp_ns, downscale_camera(v.camera, f), v.pose))
+        mcfg = dataclasses.replace(self.seg_cfg.masks, hull_consistency=False, mode="points")
+        empty = TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32))
+        masks, _p = render_masks(small, mcfg, empty, np.asarray(xyz, np.float64))
+        return {v.stamp_ns: masks[v.key] for v in small}
+
+    def _keys_to_mask(self, views: list[View], xyz: np.ndarray) -> list[str]:
+        """Keys of the keyframes this run re-masks: those without a final mask, those whose
+        coarse silhouette changed by more than ``final_refresh_change`` since their final
+        mask was made, and ``final_refresh_share`` of the rest, longest-final first."""
+        sil = self._coarse_silhouettes(views, xyz)
+        with self._lock:
+            src = {v.stamp_ns: self._final_src.get(v.stamp_ns) for v in views
+                   if v.stamp_ns in self._final}
+        new, changed, rest = [], [], []
+        for v in views:
+            old = src.get(v.stamp_ns) if v.stamp_ns in src else None
+            if old is None or old[1] is None or old[1].shape != sil[v.stamp_ns].shape:
+                new.append(v)
+                continue
+            a, b = old[1], sil[v.stamp_ns]
+            union = (a | b).sum()
+            change = 1.0 - (a & b).sum() / union if union else 0.0
+            (changed if change > self.cfg.final_refresh_change else rest).append((old[0], v))
+        n_rot = int(np.ceil(self.cfg.final_refresh_share * len(rest))) if rest else 0
+        rest.sort(key=lambda rv: rv[0])  # stable: oldest run first, then capture order
+        rotated = [v for _r, v in rest[:n_rot]]
+        self.diag.set("masks_new_last_run", len(new))
+        self.diag.set("masks_changed_last_run", len(changed))
+        self.diag.set("masks_rotated_last_run", len(rotated))
+        return [v.key for v in new] + [v.key for _r, v in changed] + [v.key for v in rotated]
 
     # ---- fast path: provisional masks and cloud-only runs -----------------------------------
     def _fast_loop(self) -> None:
@@ -532,6 +659,8 @@ class SegmentationNode(Node):
             for s in [s for s in self._provisional if s not in kept]:
                 del self._provisional[s]  # evicted keyframes
             self._final &= kept
+            for s in [s for s in self._final_src if s not in kept]:
+                del self._final_src[s]
             prov = sorted(self._provisional)
         self.diag.set("masks_provisional", len(prov))
         shown = ",".join(str(s) for s in prov[-10:])
@@ -560,7 +689,7 @@ class SegmentationNode(Node):
             response.message = (f"not ready: cloud={'yes' if self._points_msg else 'no'}, "
                                 f"keyframes={len(self.keyframes)} (need the SfM cloud and >= 2)")
             return response
-        started = self.trigger()
+        started = self.trigger(all_masks=True)
         response.success = started
         response.message = "segmentation started" if started else "a run is already in progress"
         return response
