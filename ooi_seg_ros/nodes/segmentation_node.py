@@ -395,7 +395,7 @@ class SegmentationNode(Node):
                 self.diag.timing("segment_cloud", time.monotonic() - t0)
                 self._publish_cloud(ooi.xyz, ooi.rgb, seq, cloud_stamp, f"run {run_no}")
 
-            keys = None
+            keys, sil = None, None
             if self.cfg.incremental_final and not all_masks:
                 # the point stages first (deterministic: the same OOI cloud as the run's), to
                 # choose the keyframes whose masks this run makes
@@ -404,7 +404,7 @@ class SegmentationNode(Node):
                             on_cloud=lambda ooi: (on_cloud(ooi), _raise_done()))
                 except _PointStagesDone:
                     pass
-                keys = self._keys_to_mask(views, got_cloud[0].xyz)
+                keys, sil = self._keys_to_mask(views, got_cloud[0].xyz)
                 if not keys:  # every keyframe keeps its final mask (final_refresh_share 0)
                     self.runs += 1
                     self.last_run_newest_ns = max(v.stamp_ns for v in views)
@@ -413,7 +413,6 @@ class SegmentationNode(Node):
                     self.diag.count("masks_reused", len(views))
                     self.diag.set_state(f"run {self.runs}: no keyframe needed a new mask")
                     return
-            sil = self._coarse_silhouettes(views, got_cloud[0].xyz) if got_cloud else None
             result = segment(capture, cloud, self.seg_cfg,
                              on_cloud=None if keys is not None else on_cloud,
                              mask_keys=keys)
@@ -513,10 +512,11 @@ class SegmentationNode(Node):
         masks, _p = render_masks(small, mcfg, empty, np.asarray(xyz, np.float64))
         return {v.stamp_ns: masks[v.key] for v in small}
 
-    def _keys_to_mask(self, views: list[View], xyz: np.ndarray) -> list[str]:
+    def _keys_to_mask(self, views: list[View], xyz: np.ndarray) -> tuple[list[str], dict]:
         """Keys of the keyframes this run re-masks: those without a final mask, those whose
         coarse silhouette changed by more than ``final_refresh_change`` since their final
-        mask was made, and ``final_refresh_share`` of the rest, longest-final first."""
+        mask was made, and ``final_refresh_share`` of the rest, longest-final first; and the
+        coarse silhouettes of ``xyz`` ({stamp: mask}) it compared."""
         sil = self._coarse_silhouettes(views, xyz)
         with self._lock:
             src = {v.stamp_ns: self._final_src.get(v.stamp_ns) for v in views
@@ -537,7 +537,8 @@ class SegmentationNode(Node):
         self.diag.set("masks_new_last_run", len(new))
         self.diag.set("masks_changed_last_run", len(changed))
         self.diag.set("masks_rotated_last_run", len(rotated))
-        return [v.key for v in new] + [v.key for _r, v in changed] + [v.key for v in rotated]
+        keys = [v.key for v in new] + [v.key for _r, v in changed] + [v.key for v in rotated]
+        return keys, sil
 
     # ---- fast path: provisional masks and cloud-only runs -----------------------------------
     def _fast_loop(self) -> None:
