@@ -293,3 +293,26 @@ def test_background_planes_skip_a_second_layer_of_the_same_wall():
     obj = _sphere(800, r=0.5, c=(0, 0, 0.5))
     cams = np.array([v.pose.t for v in _ring_views(12, radius=3.0, height=1.5)])
     assert len(background_planes(wall, obj, cams, 0.02, 3, seed=0)) == 1
+
+
+def test_eps_widening_joins_a_sparse_part_but_not_a_neighbour():
+    rng = np.random.default_rng(6)
+    body = _sphere(2000, r=0.3, c=(0, 0, 0), seed=1)
+    tail = rng.normal((0, 0, 0.42), 0.02, (60, 3))  # a part beyond a gap of ~2 spacings
+    single = NoiseConfig(select="central", eps_scale=1.5)
+    wide = NoiseConfig(select="central", eps_scale=1.5, eps_max_scale=4.0)
+    xyz = np.vstack([body, tail])
+    k0, _ = noise_filter(xyz, single, np.zeros(3), 2.0)
+    k1, p = noise_filter(xyz, wide, np.zeros(3), 2.0)
+    assert (k0 >= 2000).sum() == 0 and (k1 >= 2000).sum() == 60 and (k1 < 2000).sum() == 2000
+    assert p["eps_scales_tried"][0] == 1.5 and len(p["eps_scales_tried"]) >= 2
+    # a neighbouring object a little farther out: the widening stops before it joins (the
+    # selection's extent would grow far beyond the object's)
+    nb = _sphere(800, r=0.15, c=(0.53, 0, 0), seed=3)
+    xyz2 = np.vstack([xyz, nb])
+    k2, p2 = noise_filter(xyz2, wide, np.zeros(3), 2.0)
+    assert (k2 >= 2060).sum() == 0 and (k2 < 2000).sum() == 2000 and "stopped_at_scale" in p2
+    unguarded = NoiseConfig(select="central", eps_scale=1.5, eps_max_scale=4.0,
+                            max_extent_growth=100.0)
+    k3, _ = noise_filter(xyz2, unguarded, np.zeros(3), 2.0)
+    assert (k3 >= 2060).sum() == 800
