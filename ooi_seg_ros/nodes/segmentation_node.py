@@ -23,8 +23,9 @@ masks (refinement, hull carve), so results are published in three tiers:
 - The *final* masks of a full run, which replace the provisional ones. A run re-masks (mesh
   splat + per-view refinement) only the keyframes that need it (``incremental_final``): those
   with no final mask yet, those in whose view the coarse raw silhouette of the run's OOI cloud
-  differs from the one their final mask was made with by more than ``final_refresh_change``
-  (1 - IoU at ``change_check_side`` pixels), and ``final_refresh_share`` of the rest, those
+  gained or lost more than ``final_refresh_change`` of the area of the one their final mask
+  was made with (at ``change_check_side`` pixels, outline shifts within ``change_tolerance``
+  not counted), and ``final_refresh_share`` of the rest, those
   whose final mask is oldest first, so that none is more than 1/share runs old. The others
   keep the final mask an earlier run published (it stays final; it is not sent again).
   Diagnostics: ``masks_new_last_run`` / ``_changed_`` / ``_rotated_`` / ``_refined_`` /
@@ -55,6 +56,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.duration import Duration
 from rclpy.node import Node
+from scipy import ndimage
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
@@ -135,8 +137,13 @@ class SegNodeConfig:
     final_refresh_change: float = dataclasses.field(
         default=0.1, metadata={"doc": "with incremental_final: re-mask a keyframe when the "
                                       "coarse silhouette of the new OOI cloud in its view "
-                                      "differs (1 - IoU) by more than this from the one its "
-                                      "final mask was made with"})
+                                      "gained or lost more than this share of the area of "
+                                      "the one its final mask was made with (beyond "
+                                      "change_tolerance)"})
+    change_tolerance: float = dataclasses.field(
+        default=0.02, metadata={"doc": "outline shifts up to this share of the image's long "
+                                       "side are not counted as change (the raw splat "
+                                       "outline moves as the cloud gets denser)"})
     final_refresh_share: float = dataclasses.field(
         default=0.2, metadata={"doc": "with incremental_final: share of the other keyframes "
                                       "(longest-final first) re-masked each run anyway, so "
@@ -164,6 +171,8 @@ SPECS = {
                                       "keyframe", 0.0, 1.0),
     "final_refresh_share": ParamSpec("share of the other keyframes re-masked each run anyway",
                                      0.0, 1.0),
+    "change_tolerance": ParamSpec("outline shift not counted as change (share of the long "
+                                  "side)", 0.0, 0.5),
     "change_check_side": ParamSpec("long side of the coarse silhouettes compared", 16, 4096),
     "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
                                  read_only=True),
@@ -188,6 +197,16 @@ class _PointStagesDone(Exception):
 
 def _raise_done() -> None:
     raise _PointStagesDone
+
+
+def _silhouette_change(old: np.ndarray, new: np.ndarray, tol_px: int) -> float:
+    """Area the silhouette gained or lost, beyond ``tol_px`` pixels from the other one, as a
+    share of the old silhouette's area (1.0 when the old one was empty and the new is not)."""
+    st = np.ones((2 * tol_px + 1, 2 * tol_px + 1), bool) if tol_px > 0 else None
+    grow = (lambda m: ndimage.binary_dilation(m, st)) if st is not None else (lambda m: m)
+    moved = int((new & ~grow(old)).sum() + (old & ~grow(new)).sum())
+    area = int(old.sum())
+    return moved / area if area else float(moved > 0)
 
 
 @dataclasses.dataclass
@@ -518,6 +537,7 @@ class SegmentationNode(Node):
         mask was made, and ``final_refresh_share`` of the rest, longest-final first; and the
         coarse silhouettes of ``xyz`` ({stamp: mask}) it compared."""
         sil = self._coarse_silhouettes(views, xyz)
+        tol = int(round(self.cfg.change_tolerance * self.cfg.change_check_side))
         with self._lock:
             src = {v.stamp_ns: self._final_src.get(v.stamp_ns) for v in views
                    if v.stamp_ns in self._final}
@@ -527,9 +547,7 @@ class SegmentationNode(Node):
             if old is None or old[1] is None or old[1].shape != sil[v.stamp_ns].shape:
                 new.append(v)
                 continue
-            a, b = old[1], sil[v.stamp_ns]
-            union = (a | b).sum()
-            change = 1.0 - (a & b).sum() / union if union else 0.0
+            change = _silhouette_change(old[1], sil[v.stamp_ns], tol)
             (changed if change > self.cfg.final_refresh_change else rest).append((old[0], v))
         n_rot = int(np.ceil(self.cfg.final_refresh_share * len(rest))) if rest else 0
         rest.sort(key=lambda rv: rv[0])  # stable: oldest run first, then capture order
