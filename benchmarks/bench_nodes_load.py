@@ -304,6 +304,94 @@ def time_sfm(capture, factors: list[int], n: int = 20) -> None:
               flush=True)
 
 
+def replay_runs(n_views: int, every: int, seg_params: tuple) -> None:
+    """Offline and deterministic: the segmentation node's full runs on the demo bag's first
+    ``n_views`` keyframes, one run every ``every`` keyframes on the SfM cloud of that moment,
+    called synchronously (no load, no timing noise), with incremental final masks and with
+    every keyframe re-masked, side by side: masks made per run, the run's CPU seconds, and the
+    mean IoU against the bag's ground truth of the final mask each keyframe holds after each
+    run (what a consumer of ``ooi/mask`` has)."""
+    import uuid
+    from pathlib import Path
+
+    from ooi_seg_ros.bag import BagReader
+    from ooi_seg_ros.core.types import View
+    from ooi_seg_ros.sfm.incremental import IncrementalSfM
+
+    bag = BagReader(str(Path(__file__).resolve().parents[1] / "bags" / "demo.mcap"))
+    names = {"/camera/camera_info": 0, "/camera/pose": 1, "/camera/image_raw": 2,
+             "/ground_truth/mask": 3}
+    msgs = [[], [], [], []]
+    for topic, ty, _t, data in bag.messages(topics=list(names)):
+        msgs[names[topic]].append(bag.decode(ty, data))
+    kfs = list(zip(*[m[:n_views] for m in msgs]))
+    gt = {msgconv.stamp_to_ns(g.header.stamp): msgconv.image_to_mask(g) for *_x, g in kfs}
+    sfm = IncrementalSfM()
+    clouds = {}
+    for k, (info, pose, img, _g) in enumerate(kfs):
+        st = msgconv.stamp_to_ns(img.header.stamp)
+        sfm.add_keyframe(View("", st, msgconv.camera_info_to_intrinsics(info),
+                              msgconv.pose_from_msg(pose.pose), image=msgconv.image_to_rgb(img)))
+        if (k + 1) % every == 0 or k + 1 == len(kfs):
+            c = sfm.cloud()
+            stamp = msgconv.ns_to_stamp(st)
+            clouds[k + 1] = (msgconv.sfm_cloud_to_pointcloud2(c, stamp),
+                             msgconv.observations_to_pointcloud2(c, stamp))
+    rows = {}
+    # a warm-up run first: the first segment() call of a process makes slightly different
+    # masks than the later ones (some one-time state in the segmentation core), which would
+    # favour whichever mode runs second
+    for incremental in ("warm-up", True, False):
+        ctx = Context()
+        rclpy.init(context=ctx)
+        node = SegmentationNode(context=ctx, namespace="/replay_" + uuid.uuid4().hex[:8],
+                                parameter_overrides=[
+                                    Parameter("every_n_keyframes", value=0),
+                                    Parameter("provisional_masks", value=False),
+                                    Parameter("cloud_runs", value=False),
+                                    Parameter("incremental_final", value=bool(incremental))]
+                                + list(seg_params))
+        held: dict = {}
+        node.pub_mask.publish = lambda m, held=held: held.__setitem__(
+            msgconv.stamp_to_ns(m.header.stamp), msgconv.image_to_mask(m))
+        out = []
+        try:
+            fed = 0
+            for n, (points, obs) in sorted(clouds.items()):
+                for info, pose, img, _g in kfs[fed:n]:
+                    node.on_kf_info(info)
+                    node.on_kf_pose(pose)
+                    node.on_kf_image(img)
+                fed = n
+                node.on_points(points)
+                node.on_obs(obs)
+                assert node._busy.acquire(blocking=False)
+                c0 = time.process_time()
+                node._run()
+                cpu = time.process_time() - c0
+                if node.last_error:
+                    raise RuntimeError(node.last_error)
+                made = node.diag.values.get("masks_refined_last_run", n)
+                iou = np.mean([float((held[s] & gt[s]).sum() / max((held[s] | gt[s]).sum(), 1))
+                               for s in held])
+                out.append((n, int(made), round(cpu, 1), round(float(iou), 3)))
+                if incremental == "warm-up":
+                    break
+        finally:
+            node.destroy_node()
+            rclpy.shutdown(context=ctx)
+        rows[incremental] = out
+    print("\n| keyframes at the run | incremental: masks made / run CPU s / mean final IoU "
+          "| every keyframe: masks made / run CPU s / mean final IoU |")
+    print("|---|---|---|")
+    for a, b in zip(rows[True], rows[False]):
+        print(f"| {a[0]} | {a[1]} / {a[2]} / {a[3]:.3f} | {b[1]} / {b[2]} / {b[3]:.3f} |")
+    ta, tb = sum(r[2] for r in rows[True]), sum(r[2] for r in rows[False])
+    print(f"| all runs | {sum(r[1] for r in rows[True])} / {ta:.1f} / "
+          f"{rows[True][-1][3]:.3f} | {sum(r[1] for r in rows[False])} / {tb:.1f} / "
+          f"{rows[False][-1][3]:.3f} |")
+
+
 def compare_seg_downscale(capture, factor: int) -> None:
     """Offline: the segmentation on full-size views vs on 1/factor copies (as the node keeps
     them), one SfM cloud, masks upscaled to full size; IoU against the ground truth."""
@@ -362,6 +450,9 @@ def main() -> None:
     ap.add_argument("--no-fast-path", action="store_true",
                     help="segmentation node without provisional masks and cloud-only runs "
                          "(OOI cloud and masks only from full runs), for comparison")
+    ap.add_argument("--replay-demo", type=int, default=0, metavar="EVERY",
+                    help="only replay the node's full runs offline on the demo bag, one every "
+                         "EVERY keyframes, incremental vs all masks (deterministic)")
     ap.add_argument("--all-masks", action="store_true",
                     help="every full run re-masks every keyframe (incremental_final false: "
                          "the behaviour before incremental final runs), for comparison")
@@ -372,6 +463,9 @@ def main() -> None:
                        for k, v in (a.split("=", 1) for a in args.seg_param))
     if args.all_masks:
         seg_params = (Parameter("incremental_final", value=False),) + seg_params
+    if args.replay_demo:
+        replay_runs(args.unique, args.replay_demo, seg_params)
+        return
     if not args.default_malloc:
         limit_heap_growth()  # as the nodes' main() does (run_node)
     w, h = (int(x) for x in args.size.split("x"))

@@ -448,6 +448,13 @@ class SegmentationNode(Node):
             self.diag.count("masks_reused", reused)
             for w in getattr(result, "warnings", []) or []:
                 self.throttle.warn("segwarn:" + w[:40], f"segmentation: {w}")
+            d = self.diag.values
+            why = (f" (new {d.get('masks_new_last_run')}, changed "
+                   f"{d.get('masks_changed_last_run')}, rotated "
+                   f"{d.get('masks_rotated_last_run')})" if keys is not None else "")
+            self.get_logger().info(
+                f"run {self.runs}: masked {len(result.masks)} of {len(views)} keyframes{why}, "
+                f"kept {reused} final masks of earlier runs; {time.monotonic() - t0:.1f} s")
             self.diag.set_state(f"run {self.runs}: {len(result.ooi_cloud)} OOI points, "
                                 f"{len(result.masks)} masks made, {reused} final masks of "
                                 f"earlier runs kept")
