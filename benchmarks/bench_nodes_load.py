@@ -95,7 +95,6 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
     if with_nodes:
         sfm = SfmNode(context=ctx, namespace=ns)
         seg = SegmentationNode(context=ctx, namespace=ns, parameter_overrides=[
-            Parameter("every_n_keyframes", value=10),
             Parameter("image_budget_mb", value=float(budget_mb)),
             Parameter("provisional_masks", value=fast_path),
             Parameter("cloud_runs", value=fast_path)] + list(seg_params))
@@ -159,7 +158,7 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
                 + sfm.diag.counters.get("error_sfm", 0) < sfm.selector.accepted):
             time.sleep(0.5)
         t_done_sfm = time.monotonic()
-        # the node re-segments by itself (every 10 keyframes, or idle_run_s after the last
+        # the node re-segments by itself (every_n_keyframes, or idle_run_s after the last
         # input): wait for the run that includes the newest keyframe
         last_kf = max(int(k) for k in seg.keyframes) if seg.keyframes else None
         while time.monotonic() < deadline and (seg.last_run_newest_ns != last_kf
@@ -454,8 +453,9 @@ def main() -> None:
                     help="only replay the node's full runs offline on the demo bag, one every "
                          "EVERY keyframes, incremental vs all masks (deterministic)")
     ap.add_argument("--all-masks", action="store_true",
-                    help="every full run re-masks every keyframe (incremental_final false: "
-                         "the behaviour before incremental final runs), for comparison")
+                    help="every full run re-masks every keyframe (incremental_final false); "
+                         "with --seg-param every_n_keyframes=10 the behaviour before "
+                         "incremental final runs, for comparison")
     ap.add_argument("--seg-param", action="append", default=[], metavar="NAME=VALUE",
                     help="extra segmentation_node parameter (YAML value; after --no-fast-path)")
     args = ap.parse_args()

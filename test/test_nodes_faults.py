@@ -76,8 +76,8 @@ def test_bad_parameter_values_are_refused(ctx):
         assert not res[0].successful and "range" in res[0].reason
         res = node.set_parameters([Parameter("mask_stride", value="two")])
         assert not res[0].successful
-        res = node.set_parameters([Parameter("every_n_keyframes", value=5)])
-        assert res[0].successful and node.cfg.every_n_keyframes == 5
+        res = node.set_parameters([Parameter("every_n_keyframes", value=7)])
+        assert res[0].successful and node.cfg.every_n_keyframes == 7
     finally:
         node.destroy_node()
 

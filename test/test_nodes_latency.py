@@ -160,7 +160,8 @@ def test_cloud_first_provisional_masks_then_final(ctx):
         assert int(d["masks_refined_last_run"]) == len(made)
         assert int(d["masks_reused_last_run"]) == 12 - len(made)
         rest = 10 - int(d["masks_changed_last_run"])
-        assert int(d["masks_rotated_last_run"]) == int(np.ceil(0.2 * rest))
+        share = node.cfg.final_refresh_share
+        assert int(d["masks_rotated_last_run"]) == int(np.ceil(share * rest))
         assert node.provisional_stamps() == []
         # a run with nothing new re-masks only the rotating share (nothing changed): the
         # keyframes whose final masks are the oldest
@@ -171,7 +172,7 @@ def test_cloud_first_provisional_masks_then_final(ctx):
         assert node.last_error is None, node.last_error
         again = sorted(s for k, s, _m in events if k == "mask")
         assert int(node.diag.values["masks_changed_last_run"]) == 0
-        assert again == sorted(oldest[:int(np.ceil(0.2 * 12))])
+        assert again == sorted(oldest[:int(np.ceil(share * 12))])
         print(f"\n[incremental final masks] run 2 made {len(made)} of 12 masks "
               f"({d['masks_changed_last_run']} changed, {d['masks_rotated_last_run']} rotated), "
               f"run 3 (nothing new) made {len(again)}")

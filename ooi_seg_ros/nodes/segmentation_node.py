@@ -79,8 +79,10 @@ class SegNodeConfig:
         default="ours", metadata={"doc": "segmentation preset: ours (default) or paper; "
                                          "seg.* parameters override single options"})
     every_n_keyframes: int = dataclasses.field(
-        default=10, metadata={"doc": "re-segment after this many new keyframes (0 = only on "
-                                     "the ~/segment service)"})
+        default=5, metadata={"doc": "re-segment after this many new keyframes (0 = only on "
+                                    "the ~/segment service); with incremental_final a run "
+                                    "costs about its new keyframes' masks, so runs can be "
+                                    "frequent (10 suits incremental_final false)"})
     idle_run_s: float = dataclasses.field(
         default=2.0, metadata={"doc": "also re-segment when keyframes came since the last run "
                                       "and no keyframe or cloud arrived for this long (the "
@@ -145,7 +147,7 @@ class SegNodeConfig:
                                        "side are not counted as change (the raw splat "
                                        "outline moves as the cloud gets denser)"})
     final_refresh_share: float = dataclasses.field(
-        default=0.2, metadata={"doc": "with incremental_final: share of the other keyframes "
+        default=0.1, metadata={"doc": "with incremental_final: share of the other keyframes "
                                       "(longest-final first) re-masked each run anyway, so "
                                       "no final mask is more than 1/share runs old (0 = none)"})
     change_check_side: int = dataclasses.field(
