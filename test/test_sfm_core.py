@@ -178,7 +178,7 @@ def test_pipeline_bounds_keyframes_in_flight_and_survives_its_worker(sim, built)
 def test_pipeline_reports_a_bad_keyframe_and_goes_on(sim):
     views = [copy.copy(v) for v in sim.capture.views[:4]]
     views[1].image = views[1].get_image()[:-8]  # does not match its camera_info
-    with PipelinedSfM(ahead=2, workers=1) as pipe:
+    with PipelinedSfM(ahead=2, workers=1, keep_images=False) as pipe:
         pipe.submit(views[0])
         pipe.submit(views[1])
         pipe.add_next()
@@ -189,6 +189,7 @@ def test_pipeline_reports_a_bad_keyframe_and_goes_on(sim):
         pipe.add_next()
         pipe.add_next()
         assert pipe.report()["keyframes"] == 3 and len(pipe.cloud()) > 0
+        assert all(v.image is None for v in views)  # pixels let go once the features are in
         bad = copy.copy(views[0])
         bad.pose = Pose(bad.pose.R * 1.3, bad.pose.t)
         with pytest.raises(InputError, match="orthonormal"):  # checked before it is queued

@@ -56,6 +56,8 @@ def _worker_extract(img, cam, key: str) -> KeyframeFeatures:
 
 def _serve() -> None:
     """The worker's main loop: config first, then (id, image, camera, key) jobs until EOF."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's; it closes our stdin
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # a library printing to stdout must not corrupt the protocol
     inp = sys.stdin.buffer
@@ -77,8 +79,11 @@ def _serve() -> None:
             except Exception:  # noqa: BLE001 — an exception that does not pickle
                 exc = RuntimeError(repr(exc))
             res = (jid, False, exc)
-        pickle.dump(res, out, protocol=pickle.HIGHEST_PROTOCOL)
-        out.flush()
+        try:
+            pickle.dump(res, out, protocol=pickle.HIGHEST_PROTOCOL)
+            out.flush()
+        except OSError:  # the parent has gone
+            return
 
 
 class WorkerDied(RuntimeError):
@@ -200,15 +205,17 @@ class PipelinedSfM:
     Use ``run(views)`` for a whole sequence, or for a live stream ``submit(view)`` as
     keyframes arrive (while ``can_submit``) and ``add_next()`` to add the oldest one to the
     SfM (it waits for its features). ``workers=0`` extracts in the calling thread: the same
-    interface, the serial path.
+    interface, the serial path; None picks 1 where 2+ cores are usable. ``keep_images=False``
+    drops each keyframe's image once its features are in the SfM.
     """
 
     def __init__(self, sfm: Optional[IncrementalSfM] = None, ahead: int = 2,
-                 workers: Optional[int] = None):
+                 workers: Optional[int] = None, keep_images: bool = True):
         if ahead < 1:
             raise ValueError(f"ahead must be >= 1 (keyframes extracted ahead), got {ahead}")
         self.sfm = sfm if sfm is not None else IncrementalSfM()
         self.ahead = int(ahead)
+        self.keep_images = keep_images  # False: a keyframe's pixels are let go once it is added
         self.workers = default_feature_workers() if workers is None else int(workers)
         self._pending: collections.deque = collections.deque()  # (view, Future or None)
         self._worker: Optional[FeatureWorker] = None
@@ -264,15 +271,19 @@ class PipelinedSfM:
         view, fut = self._pending.popleft()
         features: Optional[KeyframeFeatures] = None
         t0 = time.perf_counter()
-        if fut is not None:
-            try:
-                features = fut.result()
-            except WorkerDied as exc:
-                self._fail_over(exc)
-                for i, (v, f) in enumerate(self._pending):  # lost with the worker: redo here
-                    self._pending[i] = (v, None)
-        wait_s = time.perf_counter() - t0
-        stats = self.sfm.add_keyframe(view, features)
+        try:
+            if fut is not None:
+                try:
+                    features = fut.result()
+                except WorkerDied as exc:
+                    self._fail_over(exc)
+                    for i, (v, _) in enumerate(self._pending):  # lost with the worker: redo
+                        self._pending[i] = (v, None)
+            wait_s = time.perf_counter() - t0
+            stats = self.sfm.add_keyframe(view, features)
+        finally:
+            if not self.keep_images:  # the features are all SfM needs (a live node's memory)
+                view.image = None
         stats["features_wait_s"] = wait_s
         stats["features_cpu_s"] = features.extract_cpu_s if features is not None else None
         return stats
