@@ -5,14 +5,24 @@ by a 60-camera orbit at 640x480. Each stage runs on the full N-point cloud. Base
 scikit-learn Gaussian KDE fitted to and scored on the whole cloud (O(N^2); measured at small N
 and extrapolated quadratically, marked "~"), and per-pixel brute-force mask rendering (every
 pixel tested against every projected point disc, no acceleration; measured on one view).
+The noise stage runs with the default ("ours") options, eps widening included.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_speed.py --sizes 10000 100000 1000000
+``--pipeline SCENE:WxH ...`` also times the whole default ``segment()`` per stage (ROI ...
+refinement with the plane check) on the quality bench's cached SfM captures (60 views; run
+bench_seg_quality.py once to fill the cache). Wall times are printed with the process CPU
+time and the load average: run it under ``flock /tmp/ooi_timing.lock`` on a shared box.
+
+    OMP_NUM_THREADS=1 flock /tmp/ooi_timing.lock .venv/bin/python benchmarks/bench_seg_speed.py \
+        --sizes 10000 100000 --pipeline aircraft:320x240 aircraft:640x360
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -22,7 +32,8 @@ from ooi_seg_ros.seg.density import DensityConfig, density_filter
 from ooi_seg_ros.seg.floor import FloorConfig, floor_filter
 from ooi_seg_ros.seg.masks import MaskConfig, mesh_masks, point_masks, point_radii
 from ooi_seg_ros.seg.mesh import MeshConfig, build_mesh
-from ooi_seg_ros.seg.noise import NoiseConfig, noise_filter
+from ooi_seg_ros.seg.noise import noise_filter
+from ooi_seg_ros.seg.pipeline import make_config, segment
 from ooi_seg_ros.seg.roi import RoiConfig, roi_filter
 
 
@@ -45,6 +56,33 @@ def make_views(n: int, w: int = 640, h: int = 480) -> list[View]:
         eye = np.array([6 * np.cos(a), 6 * np.sin(a), 3.0])
         out.append(View(f"v{k}", k, cam, look_at(eye, np.array([0, 0, 1.0]))))
     return out
+
+
+def load_note() -> str:
+    """Load average and this process's CPU seconds so far (timings on a shared box)."""
+    la = os.getloadavg()
+    return f"load {la[0]:.2f}/{la[1]:.2f}, process CPU {time.process_time():.0f} s"
+
+
+def pipeline_timings(cases: list[str], cache: str) -> None:
+    """Per-stage seconds of the default segment() on cached SfM captures."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_seg_quality import load_case
+    stages = ["roi", "floor", "density", "noise", "mesh", "masks", "refine"]
+    print("\nwhole default segment(), 60 views (seconds per stage; plane check inside refine)")
+    print(f"{'case':>18} " + " ".join(f"{s:>8}" for s in stages)
+          + f" {'plane':>7} {'total':>7} {'CPU s':>7}  load")
+    for case in cases:
+        scene, size = case.split(":")
+        w, h = (int(x) for x in size.split("x"))
+        cap, cloud, _ = load_case(scene, 0, 60, (w, h), "sfm", Path(cache))
+        cpu0 = time.process_time()
+        r, t = timed(lambda: segment(cap, cloud, make_config("ours")))
+        cpu = time.process_time() - cpu0
+        plane = r.params.get("refine", {}).get("plane_check_s", float("nan"))
+        la = os.getloadavg()
+        print(f"{case:>18} " + " ".join(f"{r.timings.get(s, float('nan')):8.2f}" for s in stages)
+              + f" {plane:7.2f} {t:7.2f} {cpu:7.2f}  {la[0]:.2f}", flush=True)
 
 
 def timed(fn):
@@ -74,7 +112,13 @@ def main() -> None:
     ap.add_argument("--sizes", nargs="+", type=int, default=[10000, 100000, 1000000])
     ap.add_argument("--sklearn-sizes", nargs="+", type=int, default=[5000, 10000, 20000])
     ap.add_argument("--mask-views", type=int, default=300)
+    ap.add_argument("--pipeline", nargs="*", default=[], metavar="SCENE:WxH",
+                    help="also time the whole default segment() on these cached captures")
+    ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2",
+                    help="bench_seg_quality.py's SfM cache")
     args = ap.parse_args()
+    noise_cfg = make_config("ours").noise
+    print(load_note())
     views = make_views(60)
     centers = np.array([v.pose.t for v in views])
     up = np.array([0, 0, 1.0])
@@ -99,15 +143,14 @@ def main() -> None:
                                                      up, target))
         _, t_d = timed(lambda: density_filter(x, DensityConfig()))
         xs = x[keep]
-        (k2, _), t_n = timed(lambda: noise_filter(xs, NoiseConfig(select="central"), target,
-                                                  3.0))
+        (k2, _), t_n = timed(lambda: noise_filter(xs, noise_cfg, target, 3.0))
         cloud = SfmCloud.from_points(xs[k2])
         cloud.views = views
         (mesh, _), t_m = timed(lambda: build_mesh(cloud, MeshConfig(poisson_depth=8)))
         sk_est = sk[n] if n in sk else sk[n0] * (n / n0) ** 2
         mark = "" if n in sk else "~"
         print(f"{n:>8} {t_roi:7.2f} {t_fp:8.2f} {t_fs:8.2f} {t_d:8.2f} {mark:>1}{sk_est:10.1f} "
-              f"{t_n:7.2f} {t_m:7.2f}", flush=True)
+              f"{t_n:7.2f} {t_m:7.2f}   [{load_note()}]", flush=True)
         if ooi is None or n == 100000:
             ooi, ooi_mesh = cloud.xyz, mesh
     mv = make_views(args.mask_views)
@@ -125,6 +168,9 @@ def main() -> None:
         print(f"  {name:<29} {t:8.2f} s  ({1000 * t / len(mv):.1f} ms/view)")
     print(f"  naive per-pixel (baseline)   ~{t_naive * len(mv):8.1f} s  ({1000 * t_naive:.0f} "
           f"ms/view measured on 1 view; pixel agreement with splat {agree:.4f})")
+    print(f"  [{load_note()}]")
+    if args.pipeline:
+        pipeline_timings(args.pipeline, args.cache)
 
 
 if __name__ == "__main__":
