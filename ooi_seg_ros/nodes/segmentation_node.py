@@ -25,9 +25,9 @@ masks (refinement, hull carve), so results are published in three tiers:
   with no final mask yet, those in whose view the coarse raw silhouette of the run's OOI cloud
   gained or lost more than ``final_refresh_change`` of the area of the one their final mask
   was made with (at ``change_check_side`` pixels, outline shifts within ``change_tolerance``
-  not counted), and ``final_refresh_share`` of the rest, those
-  whose final mask is oldest first, so that none is more than 1/share runs old. The others
-  keep the final mask an earlier run published (it stays final; it is not sent again).
+  not counted), and ``final_refresh_share`` of the rest, those whose final mask is oldest
+  first, so that none is more than 1/share runs old. The others keep the final mask an
+  earlier run published (it stays final; it is not sent again).
   Diagnostics: ``masks_new_last_run`` / ``_changed_`` / ``_rotated_`` / ``_refined_`` /
   ``_reused_last_run``, and the ``masks_reused`` counter. The ``~/segment`` service and
   ``incremental_final`` false re-mask every keyframe.
@@ -169,8 +169,8 @@ SPECS = {
     "refresh_max_duty": ParamSpec("share of the wall time provisional refreshes may take",
                                   0.01, 1.0),
     "incremental_final": ParamSpec("full runs re-mask only the keyframes that need it"),
-    "final_refresh_change": ParamSpec("coarse silhouette change (1 - IoU) that re-masks a "
-                                      "keyframe", 0.0, 1.0),
+    "final_refresh_change": ParamSpec("share of a coarse silhouette's area gained or lost "
+                                      "that re-masks a keyframe", 0.0, 1.0),
     "final_refresh_share": ParamSpec("share of the other keyframes re-masked each run anyway",
                                      0.0, 1.0),
     "change_tolerance": ParamSpec("outline shift not counted as change (share of the long "
@@ -551,8 +551,10 @@ class SegmentationNode(Node):
             src = {v.stamp_ns: self._final_src.get(v.stamp_ns) for v in views
                    if v.stamp_ns in self._final}
         new, changed, rest = [], [], []
-        for v in views:
-            old = src.get(v.stamp_ns) if v.stamp_ns in src else None
+        for i, v in enumerate(views):
+            if i % self.cfg.mask_stride:
+                continue  # no mask is published for it
+            old = src.get(v.stamp_ns)
             if old is None or old[1] is None or old[1].shape != sil[v.stamp_ns].shape:
                 new.append(v)
                 continue
