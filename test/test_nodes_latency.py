@@ -203,3 +203,21 @@ def test_fast_path_can_be_switched_off(ctx):
     finally:
         node.destroy_node()
     assert not node._fast.is_alive()  # destroy_node stops the fast-path thread
+
+
+def test_silhouette_change_ignores_outline_shifts_within_tolerance():
+    """The change that re-masks a keyframe: area gained or lost beyond the tolerance, as a
+    share of the old silhouette (an outline that only moves by a pixel or two is no change)."""
+    from ooi_seg_ros.nodes.segmentation_node import _silhouette_change
+
+    old = np.zeros((54, 96), bool)
+    old[10:40, 20:60] = True  # 1200 px
+    grown = np.zeros_like(old)
+    grown[9:41, 19:61] = True  # outline one pixel out
+    assert _silhouette_change(old, grown, 2) == 0.0
+    assert _silhouette_change(old, grown, 0) > 0.1  # plain difference: the whole outline
+    wing = old.copy()
+    wing[10:40, 60:80] = True  # a new part, 600 px beyond the tolerance band
+    assert _silhouette_change(old, wing, 2) == pytest.approx((600 - 2 * 30) / 1200)
+    assert _silhouette_change(np.zeros_like(old), old, 2) == 1.0
+    assert _silhouette_change(np.zeros_like(old), np.zeros_like(old), 2) == 0.0
