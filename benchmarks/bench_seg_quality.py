@@ -46,7 +46,9 @@ VARIANTS = {
                                       "plane_check": {"enabled": False}}}),
     "ours-grow": ("ours", {"noise": {"grow_scale": 2.0}}),
     # one DBSCAN eps of 1.5 spacings (the default until the eps widening, this round)
-    "ours-single-eps": ("ours", {"noise": {"eps_max_scale": 0.0}}),
+    "ours-single-eps": ("ours", {"noise": {"eps_max_scale": 0.0, "merge_reach_scale": 1.0}}),
+    # eps widening, clusters merged only within the main cluster's own reach (x1.0)
+    "ours-reach1": ("ours", {"noise": {"merge_reach_scale": 1.0}}),
 }
 
 

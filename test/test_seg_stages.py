@@ -316,3 +316,19 @@ def test_eps_widening_joins_a_sparse_part_but_not_a_neighbour():
                             max_extent_growth=100.0)
     k3, _ = noise_filter(xyz2, unguarded, np.zeros(3), 2.0)
     assert (k3 >= 2060).sum() == 800
+
+
+def test_merge_reach_scale_takes_a_part_just_past_the_core_not_a_neighbour():
+    rng = np.random.default_rng(7)
+    a, z = rng.uniform(0, 2 * np.pi, 2000), rng.uniform(-0.18, 0.18, 2000)
+    pot = np.c_[0.08 * np.cos(a), 0.08 * np.sin(a), z]  # a tall core: its reach is its ends
+    leaf = rng.normal((0.22, 0, 0), 0.01, (150, 3))  # median distance ~1.1x the core's reach
+    nb = rng.normal((0.3, 0.15, 0), 0.015, (150, 3))  # a neighbour at ~1.7x the reach
+    xyz = np.vstack([pot, leaf, nb])
+    own = NoiseConfig(select="central", eps_scale=1.5)
+    k1, _ = noise_filter(xyz, own, np.zeros(3), 2.0)
+    k2, p = noise_filter(xyz, NoiseConfig(select="central", eps_scale=1.5,
+                                          merge_reach_scale=1.2), np.zeros(3), 2.0)
+    assert (k1 < 2000).sum() == 2000 and (k1 >= 2000).sum() == 0
+    assert (k2 < 2000).sum() == 2000 and ((k2 >= 2000) & (k2 < 2150)).sum() == 150
+    assert (k2 >= 2150).sum() == 0 and p["chosen_clusters"] == 2

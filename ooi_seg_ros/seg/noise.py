@@ -44,6 +44,8 @@ class NoiseConfig:
     merge_reach_quantile: float = 0.98  # central: the main cluster's reach = this quantile
     # of its points' distances to the convergence point; other clusters within it are merged
     # (0: within the frame radius instead)
+    merge_reach_scale: float = 1.0  # central: clusters within this x the main cluster's reach
+    # are merged (a leaf or a tail may stick out beyond the compact core the orbit centres on)
     eps_max_scale: float = 0.0  # widen eps up to this many spacings while the selected set
     # stays compact (see max_extent_growth); <= eps_scale: a single eps
     eps_step: float = 0.5  # step of the widening, in spacings
@@ -102,7 +104,8 @@ def _dbscan_at(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: fl
             # convergence point (a part split off by a sparse gap; not the neighbour on the
             # table, which lies farther out than the object itself reaches)
             main = ids[np.argmax(near)]
-            reach = (float(np.quantile(d[labels == main], cfg.merge_reach_quantile))
+            reach = (cfg.merge_reach_scale
+                     * float(np.quantile(d[labels == main], cfg.merge_reach_quantile))
                      if cfg.merge_reach_quantile > 0 else radius)
             within = np.array([(d[labels == i] <= reach).mean() for i in ids])
             chosen = list(ids[(within >= 0.5) | (ids == main)])

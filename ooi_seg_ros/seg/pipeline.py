@@ -65,7 +65,7 @@ def preset(method: str) -> dict:
                 "density": {"drop_fraction": 0.05, "first_peak": False},
                 "floor": {"mode": "support"},
                 "noise": {"method": "dbscan", "select": "central", "eps_scale": 1.5,
-                          "eps_max_scale": 4.0},
+                          "eps_max_scale": 4.0, "merge_reach_scale": 1.2},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
                           "splat_scale": 0.6, "hull_consistency": False,
