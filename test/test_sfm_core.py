@@ -197,6 +197,19 @@ def test_pipeline_reports_a_bad_keyframe_and_goes_on(sim):
         assert pipe.pending == 0
 
 
+def test_pipeline_without_a_worker_process_runs_serially(monkeypatch):
+    views = _small_capture(4).views
+    serial = IncrementalSfM()
+    for v in views:
+        serial.add_keyframe(v)
+    monkeypatch.setattr("sys.executable", "/nonexistent/python3")  # the worker cannot start
+    with PipelinedSfM(ahead=2, workers=1) as pipe:
+        assert pipe.workers == 0 and pipe.report()["counts"]["feature_worker_failures"] == 1
+        list(pipe.run(views))
+        every = pipe.cloud(conditioned=False)
+        assert len(every) > 0 and _same_cloud(every, serial.cloud(conditioned=False))
+
+
 def test_export_roundtrips_through_pycolmap(built, tmp_path):
     _, _, cloud = built
     write_colmap_model(cloud, tmp_path / "sparse")

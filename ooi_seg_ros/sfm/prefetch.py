@@ -207,6 +207,10 @@ class PipelinedSfM:
     SfM (it waits for its features). ``workers=0`` extracts in the calling thread: the same
     interface, the serial path; None picks 1 where 2+ cores are usable. ``keep_images=False``
     drops each keyframe's image once its features are in the SfM.
+
+    It pays where a second core is free (on two free cores 1.6-1.8x the serial keyframe rate at
+    640x480); where the process gets less than one core in all, the two processes share it and
+    nothing is gained (a few percent more CPU per keyframe; see BENCHMARKS.md).
     """
 
     def __init__(self, sfm: Optional[IncrementalSfM] = None, ahead: int = 2,
@@ -220,7 +224,10 @@ class PipelinedSfM:
         self._pending: collections.deque = collections.deque()  # (view, Future or None)
         self._worker: Optional[FeatureWorker] = None
         if self.workers > 0:
-            self._worker = FeatureWorker(self.sfm.config)
+            try:
+                self._worker = FeatureWorker(self.sfm.config)
+            except OSError as exc:  # no interpreter to start, no processes left
+                self._fail_over(exc)
 
     def _fail_over(self, exc: BaseException) -> None:
         """The worker died: continue serially (counted, logged)."""
