@@ -15,7 +15,10 @@ the pose rate) passes the keyframe selector's motion test, and only such candida
 blur test. Keyframes are republished as received. SfM runs on a copy downscaled by an integer
 factor derived from the image size (``sfm_downscale``/``sfm_max_pixels``), in a worker thread
 behind a bounded queue: when the drone produces keyframes faster than SfM takes them, the
-oldest waiting keyframe is dropped and counted, never queued forever. The worker keeps no
+oldest waiting keyframe is dropped and counted, never queued forever. Where a second core is
+free, the SIFT of the next keyframes runs in a feature-extraction process while the current one
+is matched and triangulated (``feature_workers``; ``sfm.prefetch.PipelinedSfM``: the same cloud
+as the serial path, at up to ``features_ahead`` keyframes in flight). The worker keeps no
 images once a keyframe's features are extracted. Observations are published in the source
 image's pixel coordinates.
 """
@@ -40,6 +43,7 @@ from ..core.geometry import quat_xyzw_to_matrix
 from ..core.sync import PoseBuffer
 from ..core.types import CameraIntrinsics, InputError, Pose, View
 from ..sfm.incremental import IncrementalConfig, IncrementalSfM
+from ..sfm.prefetch import PipelinedSfM
 from ..sfm.keyframes import KeyframeConfig, KeyframeSelector, rotation_angle_deg
 from .common import (ConfigParams, Diagnostics, ParamSpec, Throttle, check_image_msg,
                      downscale_camera, downscale_factor, downscale_rgb, guarded, latched_qos,
@@ -94,6 +98,13 @@ class SfmNodeConfig:
     keyframe_qos_depth: int = dataclasses.field(
         default=10, metadata={"doc": "history depth of the keyframe publishers (full-size "
                                      "images held by the middleware)"})
+    feature_workers: int = dataclasses.field(
+        default=-1, metadata={"doc": "processes extracting SIFT of the next keyframes while "
+                                     "the current one is matched (-1 = one where 2+ cores are "
+                                     "usable, 0 = extract in the SfM thread)"})
+    features_ahead: int = dataclasses.field(
+        default=2, metadata={"doc": "keyframes in flight in the feature worker (each holds "
+                                    "one SfM-size image and its features)"})
 
 
 SPECS = {
@@ -118,6 +129,10 @@ SPECS = {
     "pending_images": ParamSpec("images waiting for a pose", 1, 1000),
     "publish_every": ParamSpec("publish the cloud every N keyframes", 1, 1000),
     "frame_id": ParamSpec("world frame of outputs", read_only=True),
+    "feature_workers": ParamSpec("SIFT worker processes (-1 = auto, 0 = none)", -1, 1,
+                                 read_only=True),
+    "features_ahead": ParamSpec("keyframes in flight in the feature worker", 1, 16,
+                                read_only=True),
 }
 
 
@@ -155,6 +170,10 @@ class SfmNode(Node):
         self._jumps: collections.deque = collections.deque(maxlen=64)  # (t0, t1) ns
         self.selector = KeyframeSelector(self.kf_cfg)
         self.sfm = IncrementalSfM(self.sfm_cfg)
+        self.pipe = PipelinedSfM(self.sfm, ahead=self.cfg.features_ahead,
+                                 workers=None if self.cfg.feature_workers < 0
+                                 else self.cfg.feature_workers, keep_images=False)
+        self._submitted: dict = {}  # key -> monotonic time the keyframe entered SfM
         self.camera: Optional[CameraIntrinsics] = None
         self._camera_key: Optional[tuple] = None
         self.pending: collections.deque = collections.deque(maxlen=self.cfg.pending_images)
@@ -401,33 +420,64 @@ class SfmNode(Node):
 
     # ---- SfM worker -----------------------------------------------------------------------
     def _work_loop(self) -> None:
-        while not self._stop.is_set():
+        try:
+            while not self._stop.is_set():
+                self._feed_pipeline()
+                if self.pipe.pending:
+                    self._add_next()
+        finally:
+            self.pipe.close()  # ends the feature worker process
+
+    def _feed_pipeline(self) -> None:
+        """Hands waiting keyframes to the feature extraction while fewer than
+        ``features_ahead`` are in flight (waits briefly for one only when none is)."""
+        while self.pipe.can_submit and not self._stop.is_set():
             try:
-                view = self.work.get(timeout=0.2)
+                view = (self.work.get_nowait() if self.pipe.pending
+                        else self.work.get(timeout=0.2))
             except queue.Empty:
-                continue
-            t0 = time.monotonic()
+                return
             try:
-                sview = self._sfm_view(view)
-                self.sfm.add_keyframe(sview)
-                sview.image = None  # features are extracted: SfM keeps no pixels
+                self.pipe.submit(self._sfm_view(view))
             except Exception as exc:  # noqa: BLE001 — keep the node alive, count and report
                 self.diag.count("error_sfm")
                 self.throttle.warn("sfm", f"SfM failed on keyframe {view.key}: {exc}")
                 continue
-            self.keyframes_processed += 1
-            self._account_map()
-            self.keyframe_times.append(time.monotonic() - t0)
-            self.diag.timing("keyframe", self.keyframe_times[-1])
-            self.diag.timing("keyframe_median", float(np.median(self.keyframe_times)))
-            if self._stop.is_set():
-                break  # shutting down: the publishers may be gone
-            if self.keyframes_processed % self.cfg.publish_every == 0:
-                try:
-                    self.publish_cloud()
-                except Exception as exc:  # noqa: BLE001 — keep the worker alive
-                    self.diag.count("error_publish")
-                    self.throttle.warn("publish", f"publishing the cloud failed: {exc}")
+            self._submitted[view.key] = time.monotonic()
+
+    def _add_next(self) -> None:
+        """Adds the oldest keyframe in flight to the SfM (its features extracted ahead)."""
+        t0 = time.monotonic()
+        key = self.pipe.next_key
+        try:
+            stats = self.pipe.add_next()
+        except Exception as exc:  # noqa: BLE001 — keep the node alive, count and report
+            self.diag.count("error_sfm")
+            self.throttle.warn("sfm", f"SfM failed on keyframe {key}: {exc}")
+            self._submitted.pop(key, None)
+            return
+        self.keyframes_processed += 1
+        self._account_map()
+        self.keyframe_times.append(time.monotonic() - t0)
+        self.diag.timing("keyframe", self.keyframe_times[-1])
+        self.diag.timing("keyframe_median", float(np.median(self.keyframe_times)))
+        t_in = self._submitted.pop(key, None)
+        if t_in is not None:  # from entering the SfM (extraction) to the keyframe added
+            self.diag.timing("keyframe_latency", time.monotonic() - t_in)
+        if stats.get("features_wait_s") is not None:
+            self.diag.timing("features_wait", float(stats["features_wait_s"]))
+        self.diag.set("feature_workers", self.pipe.workers)
+        failures = int(self.sfm.counts.get("feature_worker_failures", 0))
+        if failures:
+            self.diag.counters["feature_worker_failures"] = failures
+        if self._stop.is_set():
+            return  # shutting down: the publishers may be gone
+        if self.keyframes_processed % self.cfg.publish_every == 0:
+            try:
+                self.publish_cloud()
+            except Exception as exc:  # noqa: BLE001 — keep the worker alive
+                self.diag.count("error_publish")
+                self.throttle.warn("publish", f"publishing the cloud failed: {exc}")
 
     def _account_map(self) -> None:
         """Estimates the SfM map's bytes; at the budget, stops taking keyframes (logged).

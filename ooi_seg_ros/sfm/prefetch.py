@@ -246,6 +246,11 @@ class PipelinedSfM:
         return len(self._pending)
 
     @property
+    def next_key(self) -> Optional[str]:
+        """Key of the keyframe ``add_next`` adds next (None when none is in flight)."""
+        return self._pending[0][0].key if self._pending else None
+
+    @property
     def can_submit(self) -> bool:
         """True while fewer than ``ahead`` keyframes are in flight."""
         return len(self._pending) < self.ahead
