@@ -148,13 +148,21 @@ def test_cloud_first_provisional_masks_then_final(ctx):
         assert node.cloud_runs >= 2
         # the next run makes every mask final: it masks the two new keyframes, the old ones
         # whose coarse silhouette changed and a rotating share of the rest; the others keep
-        # their final mask of the first run (not sent again)
+        # their final mask of the first run, which is sent again after the new ones
+        # (republish_kept): every keyframe's mask follows the new mesh
         events.clear()
         assert node._busy.acquire(blocking=False)
         node._run()
         assert node.last_error is None, node.last_error
-        made = sorted(s for k, s, _m in events if k == "mask")
         d = node.diag.values
+        masks = [(s, m) for k, s, m in events if k == "mask"]
+        n_made = int(d["masks_refined_last_run"])
+        made = sorted(s for s, _m in masks[:n_made])
+        resent = dict(masks[n_made:])
+        assert sorted(resent) == sorted(set(stamps) - set(made))
+        for s_, m in resent.items():  # the kept final masks, bit for bit
+            assert np.array_equal(m, final[s_]), s_
+        assert node.diag.counters["masks_republished"] == len(resent)
         assert set(stamps[10:]) <= set(made) and set(made) <= set(stamps)
         assert int(d["masks_new_last_run"]) == 2
         assert int(d["masks_refined_last_run"]) == len(made)
@@ -170,7 +178,9 @@ def test_cloud_first_provisional_masks_then_final(ctx):
         assert node._busy.acquire(blocking=False)
         node._run()
         assert node.last_error is None, node.last_error
-        again = sorted(s for k, s, _m in events if k == "mask")
+        masks = [s for k, s, _m in events if k == "mask"]
+        assert sorted(masks) == sorted(stamps)  # all 12 sent: the re-masked ones first
+        again = sorted(masks[:int(node.diag.values["masks_refined_last_run"])])
         assert int(node.diag.values["masks_changed_last_run"]) == 0
         assert again == sorted(oldest[:int(np.ceil(share * 12))])
         print(f"\n[incremental final masks] run 2 made {len(made)} of 12 masks "

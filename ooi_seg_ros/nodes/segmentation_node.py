@@ -27,7 +27,9 @@ masks (refinement, hull carve), so results are published in three tiers:
   was made with (at ``change_check_side`` pixels, outline shifts within ``change_tolerance``
   not counted), and ``final_refresh_share`` of the rest, those whose final mask is oldest
   first, so that none is more than 1/share runs old. The others keep the final mask an
-  earlier run published (it stays final; it is not sent again).
+  earlier run made (it stays final) and, with ``republish_kept`` (default), it is sent again
+  after the run's new masks, so that every keyframe's mask follows each mesh update (the node
+  keeps final masks bit-packed for this: 1 bit per pixel of the kept keyframe image).
   Diagnostics: ``masks_new_last_run`` / ``_changed_`` / ``_rotated_`` / ``_refined_`` /
   ``_reused_last_run``, and the ``masks_reused`` counter. The ``~/segment`` service and
   ``incremental_final`` false re-mask every keyframe.
@@ -150,6 +152,11 @@ class SegNodeConfig:
         default=0.1, metadata={"doc": "with incremental_final: share of the other keyframes "
                                       "(longest-final first) re-masked each run anyway, so "
                                       "no final mask is more than 1/share runs old (0 = none)"})
+    republish_kept: bool = dataclasses.field(
+        default=True, metadata={"doc": "after each full run, also re-publish the final masks "
+                                       "kept from earlier runs, so every keyframe's mask is "
+                                       "sent again whenever the mesh changes (false = only "
+                                       "the masks the run made)"})
     change_check_side: int = dataclasses.field(
         default=96, metadata={"doc": "long side in pixels of the coarse silhouettes compared "
                                      "for final_refresh_change"})
@@ -169,6 +176,7 @@ SPECS = {
     "refresh_max_duty": ParamSpec("share of the wall time provisional refreshes may take",
                                   0.01, 1.0),
     "incremental_final": ParamSpec("full runs re-mask only the keyframes that need it"),
+    "republish_kept": ParamSpec("re-publish kept final masks after each full run"),
     "final_refresh_change": ParamSpec("share of a coarse silhouette's area gained or lost "
                                       "that re-masks a keyframe", 0.0, 1.0),
     "final_refresh_share": ParamSpec("share of the other keyframes re-masked each run anyway",
@@ -261,6 +269,8 @@ class SegmentationNode(Node):
         self._final: set[int] = set()  # keyframes whose latest mask is a full run's
         # keyframe -> (run number, coarse silhouette of the OOI cloud) its final mask came from
         self._final_src: dict[int, tuple[int, np.ndarray]] = {}
+        # final masks bit-packed ({stamp: (bits, shape)}) for republish_kept
+        self._final_bits: dict[int, tuple[np.ndarray, tuple]] = {}
         self._provisional: dict[int, int] = {}  # keyframe -> cloud seq its mask came from
         self._refresh_next_t = 0.0  # monotonic time before which no provisional mask refresh
         self._cloud_claimed = 0  # newest SfM cloud seq a run has taken up (full or cloud-only)
@@ -298,6 +308,7 @@ class SegmentationNode(Node):
             with self._lock:  # a repeated keyframe replaces the old one: its mask is stale
                 self._final.discard(stamp_ns)
                 self._final_src.pop(stamp_ns, None)
+                self._final_bits.pop(stamp_ns, None)
             self._new_since_run += 1
             self._last_input = time.monotonic()
             self._wake.set()  # a provisional mask for it
@@ -503,8 +514,8 @@ class SegmentationNode(Node):
 
     def _publish(self, result, views: list[View], full: dict, cloud_stamp: int,
                  sil: dict) -> None:
-        """Publishes the run's mesh and the masks it made (keyframes it did not re-mask keep
-        their final mask of an earlier run; those are not sent again)."""
+        """Publishes the run's mesh and the masks it made, then (``republish_kept``) the final
+        masks of earlier runs that keyframes it did not re-mask keep."""
         stamp = msgconv.ns_to_stamp(cloud_stamp)
         if result.mesh is not None and not result.mesh.is_empty:
             self.pub_mesh.publish(msgconv.mesh_to_marker(result.mesh, stamp, self.cfg.frame_id))
@@ -520,10 +531,24 @@ class SegmentationNode(Node):
                 if not kept:
                     self.diag.count("masks_missing")
                 continue
+            mask = np.asarray(mask, bool)
             if self._publish_mask(mask, v.stamp_ns, full[v.stamp_ns]):
                 with self._lock:
                     self._final_src[v.stamp_ns] = (self.runs, sil.get(v.stamp_ns))
+                    self._final_bits[v.stamp_ns] = (np.packbits(mask), mask.shape)
             self.diag.count("masks_published")
+        if self.cfg.republish_kept:
+            # the kept final masks after the new ones: every keyframe's mask follows the mesh
+            for i, v in enumerate(views):
+                if i % self.cfg.mask_stride or v.key in result.masks:
+                    continue
+                with self._lock:
+                    bits = self._final_bits.get(v.stamp_ns)
+                if bits is None:
+                    continue
+                mask = np.unpackbits(bits[0], count=int(np.prod(bits[1]))).reshape(bits[1])
+                if self._publish_mask(mask.astype(bool), v.stamp_ns, full[v.stamp_ns]):
+                    self.diag.count("masks_republished")
         self._report_provisional()
 
     def _coarse_silhouettes(self, views: list[View], xyz: np.ndarray) -> dict:
@@ -691,6 +716,8 @@ class SegmentationNode(Node):
             self._final &= kept
             for s in [s for s in self._final_src if s not in kept]:
                 del self._final_src[s]
+            for s in [s for s in self._final_bits if s not in kept]:
+                del self._final_bits[s]
             prov = sorted(self._provisional)
         self.diag.set("masks_provisional", len(prov))
         shown = ",".join(str(s) for s in prov[-10:])
