@@ -141,17 +141,19 @@ def render(model: GaussianModel, cam: RasterCamera, background: torch.Tensor,
            kernel: Optional[bool] = None) -> RenderOutput:
     """Render ``model`` from ``cam`` composited over ``background`` [3] (differentiable).
 
-    ``kernel``: True/None use the compiled compositing kernel when it is available (None:
-    silently fall back to torch; True: the same, the fallback is logged by the loader), False
-    forces the pure-torch path, to which the remaining options apply.
+    ``kernel``: True/None use the compiled kernel (projection, SH colour and compositing) when
+    it is available (None: silently fall back to torch; True: the same, the fallback is logged
+    by the loader), False forces the pure-torch path, to which the remaining options apply.
     ``max_batch_elems`` bounds tiles x Gaussians x pixels of one dense batch. When the whole
     frame needs more than ``checkpoint_above`` such elements (or ``fused`` is True) the
     compositing uses the hand-written backward, which keeps no per-pixel intermediates (it
     recomputes them); below that, autograd's saved tensors make the backward a little faster.
     """
     deg = model.sh_degree if sh_degree is None else sh_degree
-    pr = project(model.means, model.log_scales, model.quats, model.logit_opacities,
-                 model.sh_dc, model.sh_rest, cam, deg)
+    use_kernel = kernel is not False and not fused and raster_kernel.available()
+    proj = raster_kernel.project if use_kernel else project
+    pr = proj(model.means, model.log_scales, model.quats, model.logit_opacities,
+              model.sh_dc, model.sh_rest, cam, deg)
     return rasterize(pr, cam, background, max_batch_elems, checkpoint_above, fused, kernel)
 
 
