@@ -85,9 +85,14 @@ def pipeline_timings(cases: list[str], cache: str) -> None:
               + f" {plane:7.2f} {t:7.2f} {cpu:7.2f}  {la[0]:.2f}", flush=True)
 
 
+CPU: list[float] = []  # CPU seconds of each timed() call, in call order
+
+
 def timed(fn):
-    t0 = time.perf_counter()
+    """(result, wall seconds); the call's process CPU seconds are appended to ``CPU``."""
+    c0, t0 = time.process_time(), time.perf_counter()
     res = fn()
+    CPU.append(time.process_time() - c0)
     return res, time.perf_counter() - t0
 
 
@@ -135,24 +140,39 @@ def main() -> None:
     print(f"\n{'N':>8} {'roi':>7} {'floor/p':>8} {'floor/s':>8} {'density':>8} {'sklearnKDE':>11} "
           f"{'noise':>7} {'mesh':>7}  (seconds; ~ = extrapolated N^2)")
     ooi = None
+    cpu_rows = []
     for n in args.sizes:
         x = make_cloud(n)
+        CPU.clear()
         _, t_roi = timed(lambda: roi_filter(x, views, target, RoiConfig()))
         _, t_fp = timed(lambda: floor_filter(x, FloorConfig(mode="paper"), centers, up, target))
         (keep, _), t_fs = timed(lambda: floor_filter(x, FloorConfig(mode="support"), centers,
                                                      up, target))
         _, t_d = timed(lambda: density_filter(x, DensityConfig()))
         xs = x[keep]
-        (k2, _), t_n = timed(lambda: noise_filter(xs, noise_cfg, target, 3.0))
+        (k2, pn), t_n = timed(lambda: noise_filter(xs, noise_cfg, target, 3.0))
         cloud = SfmCloud.from_points(xs[k2])
         cloud.views = views
         (mesh, _), t_m = timed(lambda: build_mesh(cloud, MeshConfig(poisson_depth=8)))
         sk_est = sk[n] if n in sk else sk[n0] * (n / n0) ** 2
         mark = "" if n in sk else "~"
         print(f"{n:>8} {t_roi:7.2f} {t_fp:8.2f} {t_fs:8.2f} {t_d:8.2f} {mark:>1}{sk_est:10.1f} "
-              f"{t_n:7.2f} {t_m:7.2f}   [{load_note()}]", flush=True)
+              f"{t_n:7.2f} {t_m:7.2f}   [{load_note()}; DBSCAN {pn.get('dbscan')}]", flush=True)
+        cpu_rows.append((n, list(CPU)))
         if ooi is None or n == 100000:
             ooi, ooi_mesh = cloud.xyz, mesh
+    # CPU seconds do not depend on the load of a shared box: the scaling is read from these
+    print(f"\n{'N':>8} {'roi':>7} {'floor/p':>8} {'floor/s':>8} {'density':>8} {'noise':>7} "
+          f"{'mesh':>7}  (process CPU seconds; growth vs the previous N, N log N in brackets)")
+    prev = None
+    for n, c in cpu_rows:
+        line = f"{n:>8} " + " ".join(f"{v:7.2f}" for v in c)
+        if prev is not None:
+            nlogn = (n * np.log(n)) / (prev[0] * np.log(prev[0]))
+            line += "   x" + " x".join(f"{a / max(b, 1e-9):.1f}" for a, b in zip(c, prev[1]))
+            line += f"   [N log N: x{nlogn:.1f}]"
+        print(line)
+        prev = (n, c)
     mv = make_views(args.mask_views)
     sub = ooi[np.random.default_rng(0).choice(len(ooi), min(len(ooi), 5000), replace=False)]
     radii = point_radii(sub, 4, 0.6)
