@@ -128,3 +128,22 @@ def test_relocate_and_add():
     assert opt.state[m.means]["exp_avg"].shape == (27, 3)
     m.means.sum().backward()
     opt.step()  # the optimiser works on the grown tensors
+
+
+def test_kernel_ssim_matches_torch():
+    """The compiled masked SSIM gives the convolutional path's value and gradient."""
+    from ooi_seg_ros.train import raster_kernel
+    from ooi_seg_ros.train.loss import _gauss_window
+
+    for dt in (torch.float64, torch.float32):
+        g = torch.Generator().manual_seed(0)
+        x = torch.rand(23, 31, 3, generator=g, dtype=dt, requires_grad=True)
+        y = torch.rand(23, 31, 3, generator=g, dtype=dt)
+        m = torch.rand(23, 31, generator=g) > 0.4
+        ref = masked_mean(ssim_map(x, y), m)
+        (gref,) = torch.autograd.grad(ref, x)
+        val = raster_kernel.masked_ssim(x, y, m, _gauss_window(11, dtype=dt))
+        (gk,) = torch.autograd.grad(val, x)
+        tol = 1e-12 if dt == torch.float64 else 1e-6
+        assert abs(float(val) - float(ref)) < tol
+        assert float((gk - gref).abs().max()) < tol * float(gref.abs().max()) * 10

@@ -200,3 +200,39 @@ def test_exposure_compensation_learns_per_view_gains(sim):
     assert torch.allclose(out[0, 0], torch.full((3,), 0.6)) and torch.allclose(out[0, 1], bg)
     with pytest.raises(InputError, match="exposure"):
         train(sim, masks, sim.gt_ooi_points[::40], _cfg(iterations=2, exposure="curves"))
+
+
+def test_crop_and_half_size_targets(sim):
+    """A training view's crop camera renders exactly that window of the full render (background
+    composite included), and the half-size camera renders the 2x2 average of the full image."""
+    from ooi_seg_ros.train.gaussians import init_from_points
+    from ooi_seg_ros.train.raster_common import RasterCamera
+    from ooi_seg_ros.train.raster_cpu import render
+    from ooi_seg_ros.train.trainer import _Frame, _half_camera, _levels
+
+    v = sim.views[3]
+    model = init_from_points(sim.gt_ooi_points[::20], None, 0.7)
+    cam = RasterCamera.from_view(v.camera, v.pose)
+    bg = torch.tensor([0.2, 0.5, 0.8])
+    full = render(model, cam, bg).image
+    img = torch.from_numpy(v.image.astype(np.float32) / 255)
+    mask = torch.from_numpy(v.gt_mask)
+    lv = _levels(_Frame(v.key, cam, img, mask), TrainConfig(coarse_frac=0.5))
+    tg = lv[0]
+    x0, y0 = int(cam.cx - tg.cam.cx), int(cam.cy - tg.cam.cy)
+    assert tg.cam.width * tg.cam.height < 48 * 36
+    window = full[y0:y0 + tg.cam.height, x0:x0 + tg.cam.width]
+    crop = render(model, tg.cam, bg).image
+    assert crop.shape == window.shape and crop.shape[:2] == tg.mask.shape
+    assert int(tg.mask.sum()) == int(mask.sum())  # every mask pixel is inside the crop
+    assert torch.allclose(crop, window, atol=2e-3)  # tiles start at the crop's corner
+    assert torch.equal(tg.image, img[y0:y0 + tg.cam.height, x0:x0 + tg.cam.width])
+    # half size: the rendered silhouette's centroid maps to (full - 0.5) / 2
+    half = render(model, _half_camera(cam), torch.zeros(3)).alpha
+    fa = render(model, cam, torch.zeros(3)).alpha
+    ys, xs = torch.meshgrid(torch.arange(36.0), torch.arange(48.0), indexing="ij")
+    hy, hx = torch.meshgrid(torch.arange(18.0), torch.arange(24.0), indexing="ij")
+    c_full = torch.stack([(fa * xs).sum(), (fa * ys).sum()]) / fa.sum()
+    c_half = torch.stack([(half * hx).sum(), (half * hy).sum()]) / half.sum()
+    assert torch.allclose((c_full - 0.5) / 2, c_half, atol=0.3)
+    assert lv[1].image.shape[:2] == lv[1].mask.shape and bool(lv[1].mask.any())

@@ -16,6 +16,9 @@ import torch.nn.functional as F
 from ..core.types import InputError
 
 
+SSIM_SIZE = 11  # SSIM window (pixels)
+
+
 def _gauss_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = torch.float32):
     x = torch.arange(size, dtype=dtype) - (size - 1) / 2
     g = torch.exp(-x * x / (2 * sigma * sigma))
@@ -79,11 +82,27 @@ def photometric_loss(render: torch.Tensor, gt: torch.Tensor, mask: Optional[torc
     at a fraction of the cost.
     """
     if mask is not None:
-        rs, cs = mask_crop(mask.bool(), 11 // 2)
+        rs, cs = mask_crop(mask.bool(), SSIM_SIZE // 2)
         render, gt, mask = render[rs, cs], gt[rs, cs], mask[rs, cs]
     l1 = masked_mean((render - gt).abs(), mask)
-    dssim = 1.0 - masked_mean(ssim_map(render, gt), mask)
-    return (1.0 - lambda_dssim) * l1 + lambda_dssim * dssim
+    if lambda_dssim == 0:
+        return l1
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - _mean_ssim(render, gt, mask))
+
+
+def _mean_ssim(render: torch.Tensor, gt: torch.Tensor,
+               mask: Optional[torch.Tensor]) -> torch.Tensor:
+    """Mean SSIM over the mask (all pixels if None), differentiable in ``render``: through
+    the compiled kernel when it is available (one pass each way, ~2x faster than the
+    convolutions; same value and gradient, tested), else ``ssim_map`` + ``masked_mean``."""
+    from . import raster_kernel
+
+    if (render.dim() == 3 and render.shape[-1] == 3 and not gt.requires_grad
+            and render.dtype in (torch.float32, torch.float64) and raster_kernel.available()):
+        m = torch.ones(render.shape[:2], dtype=torch.bool) if mask is None else mask.bool()
+        window = _gauss_window(SSIM_SIZE, dtype=render.dtype)
+        return raster_kernel.masked_ssim(render, gt, m, window)
+    return masked_mean(ssim_map(render, gt), mask)
 
 
 def masked_psnr(render: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor]) -> float:

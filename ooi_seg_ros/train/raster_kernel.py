@@ -595,11 +595,153 @@ Cam<T> make_cam(const double* cam, int W, int H) {
   return c;
 }
 
+
+// ------------------------------------------------------------------ masked SSIM (loss term)
+
+// 1-D Gaussian blur of K interleaved channels along one axis with replicate padding:
+// out[i] = sum_k g[k] in[clamp(i + k - r)]. ``n`` positions along the axis, ``stride`` between
+// them, ``lines`` independent lines ``lstride`` apart.
+template <typename T>
+void blur_axis(const T* in, T* out, int n, int64_t stride, int lines, int64_t lstride, int K,
+               const T* g, int r) {
+  for (int l = 0; l < lines; ++l) {
+    const T* src = in + l * lstride;
+    T* dst = out + l * lstride;
+    for (int i = 0; i < n; ++i) {
+      T* o = dst + i * stride;
+      for (int c = 0; c < K; ++c) o[c] = T(0);
+      for (int k = -r; k <= r; ++k) {
+        const int j = std::min(std::max(i + k, 0), n - 1);
+        const T w = g[k + r];
+        const T* s = src + j * stride;
+        for (int c = 0; c < K; ++c) o[c] += w * s[c];
+      }
+    }
+  }
+}
+
+// The transpose of blur_axis (scatter instead of gather).
+template <typename T>
+void blur_axis_t(const T* in, T* out, int n, int64_t stride, int lines, int64_t lstride, int K,
+                 const T* g, int r) {
+  for (int l = 0; l < lines; ++l) {
+    const T* src = in + l * lstride;
+    T* dst = out + l * lstride;
+    for (int i = 0; i < n; ++i)
+      for (int c = 0; c < K; ++c) dst[i * stride + c] = T(0);
+    for (int i = 0; i < n; ++i) {
+      const T* s = src + i * stride;
+      for (int k = -r; k <= r; ++k) {
+        const int j = std::min(std::max(i + k, 0), n - 1);
+        const T w = g[k + r];
+        T* o = dst + j * stride;
+        for (int c = 0; c < K; ++c) o[c] += w * s[c];
+      }
+    }
+  }
+}
+
+// Separable 2-D blur (or its transpose) of an [H, W, K] image; ``tmp`` is scratch of its size.
+template <typename T>
+void blur2d(const T* in, T* out, T* tmp, int H, int W, int K, const T* g, int r, bool transpose) {
+  const int64_t row = int64_t(W) * K;
+  if (!transpose) {
+    blur_axis(in, tmp, W, K, H, row, K, g, r);    // along x
+    blur_axis(tmp, out, H, row, 1, 0, int(row), g, r);  // along y (whole rows at once)
+  } else {
+    blur_axis_t(in, tmp, H, row, 1, 0, int(row), g, r);
+    blur_axis_t(tmp, out, W, K, H, row, K, g, r);
+  }
+}
+
+// Per channel of an [H, W, 3] pair: the 5 blurred moments (mx, my, exx, eyy, exy) -> [H, W, 15]
+template <typename T>
+void ssim_moments(int H, int W, const T* x, const T* y, const T* g, int r, T* mom, T* tmp) {
+  const int64_t n = int64_t(H) * W;
+  for (int64_t p = 0; p < n; ++p)
+    for (int c = 0; c < 3; ++c) {
+      const T a = x[3 * p + c], b = y[3 * p + c];
+      T* m = mom + 15 * p + 5 * c;
+      m[0] = a;
+      m[1] = b;
+      m[2] = a * a;
+      m[3] = b * b;
+      m[4] = a * b;
+    }
+  T* blurred = tmp + 15 * n;
+  blur2d(mom, blurred, tmp, H, W, 15, g, r, false);
+  std::copy(blurred, blurred + 15 * n, mom);
+}
+
+// Mean over mask pixels of the per-pixel SSIM (mean over the 3 channels); ``mom`` receives the
+// blurred moments for the backward pass. tmp: scratch of 30 H W values.
+template <typename T>
+double ssim_forward(int H, int W, const T* x, const T* y, const uint8_t* mask, const T* g,
+                    int r, T c1, T c2, T* mom, T* tmp) {
+  ssim_moments(H, W, x, y, g, r, mom, tmp);
+  const int64_t n = int64_t(H) * W;
+  double total = 0.0;
+  int64_t count = 0;
+  for (int64_t p = 0; p < n; ++p) {
+    if (!mask[p]) continue;
+    ++count;
+    T s = T(0);
+    for (int c = 0; c < 3; ++c) {
+      const T* m = mom + 15 * p + 5 * c;
+      const T mx = m[0], my = m[1];
+      const T sxx = m[2] - mx * mx, syy = m[3] - my * my, sxy = m[4] - mx * my;
+      s += ((T(2) * mx * my + c1) * (T(2) * sxy + c2)) /
+           ((mx * mx + my * my + c1) * (sxx + syy + c2));
+    }
+    total += double(s) / 3.0;
+  }
+  return count > 0 ? total / double(count) : 0.0;
+}
+
+// d (masked mean SSIM) / d x, times ``grad_out``; tmp: scratch of 27 H W values.
+template <typename T>
+void ssim_backward(int H, int W, const T* x, const T* y, const uint8_t* mask, const T* g, int r,
+                   T c1, T c2, const T* mom, T grad_out, T* dx, T* tmp) {
+  const int64_t n = int64_t(H) * W;
+  int64_t count = 0;
+  for (int64_t p = 0; p < n; ++p) count += mask[p] ? 1 : 0;
+  T* q = tmp;           // [H, W, 9]: d mx, d exx, d exy per channel
+  T* back = tmp + 9 * n;  // [H, W, 9]
+  T* scratch = tmp + 18 * n;
+  const T w = count > 0 ? grad_out / (T(3) * T(count)) : T(0);
+  for (int64_t p = 0; p < n; ++p) {
+    T* o = q + 9 * p;
+    if (!mask[p]) {
+      for (int k = 0; k < 9; ++k) o[k] = T(0);
+      continue;
+    }
+    for (int c = 0; c < 3; ++c) {
+      const T* m = mom + 15 * p + 5 * c;
+      const T mx = m[0], my = m[1];
+      const T sxx = m[2] - mx * mx, syy = m[3] - my * my, sxy = m[4] - mx * my;
+      const T a1 = T(2) * mx * my + c1, a2 = T(2) * sxy + c2;
+      const T b1 = mx * mx + my * my + c1, b2 = sxx + syy + c2;
+      const T den = b1 * b2;
+      const T s = a1 * a2 / den;
+      const T d_a1 = a2 / den, d_a2 = a1 / den, d_b1 = -s / b1, d_b2 = -s / b2;
+      o[3 * c] = w * (T(2) * my * (d_a1 - d_a2) + T(2) * mx * (d_b1 - d_b2));
+      o[3 * c + 1] = w * d_b2;
+      o[3 * c + 2] = w * T(2) * d_a2;
+    }
+  }
+  blur2d(q, back, scratch, H, W, 9, g, r, true);
+  for (int64_t p = 0; p < n; ++p)
+    for (int c = 0; c < 3; ++c) {
+      const T* b = back + 9 * p + 3 * c;
+      dx[3 * p + c] = b[0] + T(2) * x[3 * p + c] * b[1] + y[3 * p + c] * b[2];
+    }
+}
+
 }  // namespace
 
 extern "C" {
 
-int ooi_kernel_version() { return 2; }
+int ooi_kernel_version() { return 3; }
 
 #define OOI_DEFINE(SUFFIX, T)                                                                 \
   void ooi_forward_##SUFFIX(int W, int H, int tiles_x, int64_t n_tiles,                      \
@@ -634,6 +776,16 @@ int ooi_kernel_version() { return 2; }
     project_backward<T>(n, make_cam<T>(cam, W, H), deg, means, ls, quats, sh_dc, sh_rest,    \
                         n_rest, radii, g_m2, g_con, g_col, d_means, d_ls, d_quats, d_dc,     \
                         d_rest);                                                             \
+  }                                                                                          \
+  double ooi_ssim_forward_##SUFFIX(int H, int W, const T* x, const T* y, const uint8_t* mask,  \
+                                   const T* g, int r, double c1, double c2, T* mom,         \
+                                   T* tmp) {                                                \
+    return ssim_forward<T>(H, W, x, y, mask, g, r, T(c1), T(c2), mom, tmp);                  \
+  }                                                                                          \
+  void ooi_ssim_backward_##SUFFIX(int H, int W, const T* x, const T* y, const uint8_t* mask,   \
+                                  const T* g, int r, double c1, double c2, const T* mom,     \
+                                  double grad_out, T* dx, T* tmp) {                          \
+    ssim_backward<T>(H, W, x, y, mask, g, r, T(c1), T(c2), mom, T(grad_out), dx, tmp);       \
   }
 
 OOI_DEFINE(f32, float)
@@ -714,6 +866,12 @@ def _bind(path: Path) -> ctypes.CDLL:
         pb = getattr(lib, f"ooi_project_backward_{sfx}")
         pb.argtypes = [i64, p, i, i, i, p, p, p, p, p, i, p, p, p, p, p, p, p, p, p]
         pb.restype = None
+        sf = getattr(lib, f"ooi_ssim_forward_{sfx}")
+        sf.argtypes = [i, i, p, p, p, p, i, d, d, p, p]
+        sf.restype = d
+        sb = getattr(lib, f"ooi_ssim_backward_{sfx}")
+        sb.argtypes = [i, i, p, p, p, p, i, d, d, p, d, p, p]
+        sb.restype = None
     return lib
 
 
@@ -868,6 +1026,52 @@ def project(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
                                                  _cam_array(cam), int(cam.width),
                                                  int(cam.height), int(sh_degree))
     return Projected(m2, con, depth, radii, col, torch.sigmoid(logit_opacities))
+
+
+SSIM_C1, SSIM_C2 = 0.01 ** 2, 0.03 ** 2
+
+
+class MaskedSsimFn(torch.autograd.Function):
+    """Mean over mask pixels of the per-pixel SSIM (Gaussian window, replicate padding, mean
+    over the 3 channels) of ``x`` against ``y`` (no gradient), as ``loss.ssim_map`` followed
+    by ``loss.masked_mean``, in one compiled pass forward and one backward."""
+
+    @staticmethod
+    def forward(ctx, x, y, mask, window):
+        lib = load()
+        dt = x.dtype
+        x = x.detach().contiguous()
+        y = y.detach().to(dt).contiguous()
+        m = mask.to(torch.uint8).contiguous()
+        g = window.to(dt).contiguous()
+        h, w = x.shape[:2]
+        mom = torch.empty(h, w, 15, dtype=dt)
+        tmp = torch.empty(h, w, 30, dtype=dt)
+        fn = lib.ooi_ssim_forward_f64 if dt == torch.float64 else lib.ooi_ssim_forward_f32
+        val = fn(h, w, _ptr(x), _ptr(y), _ptr(m), _ptr(g), len(g) // 2, SSIM_C1, SSIM_C2,
+                 _ptr(mom), _ptr(tmp))
+        ctx.save_for_backward(x, y, m, g, mom)
+        return x.new_tensor(val)
+
+    @staticmethod
+    def backward(ctx, grad):
+        lib = load()
+        x, y, m, g, mom = ctx.saved_tensors
+        dt = x.dtype
+        h, w = x.shape[:2]
+        dx = torch.empty_like(x)
+        tmp = torch.empty(h, w, 27, dtype=dt)
+        fn = lib.ooi_ssim_backward_f64 if dt == torch.float64 else lib.ooi_ssim_backward_f32
+        fn(h, w, _ptr(x), _ptr(y), _ptr(m), _ptr(g), len(g) // 2, SSIM_C1, SSIM_C2, _ptr(mom),
+           float(grad), _ptr(dx), _ptr(tmp))
+        return dx, None, None, None
+
+
+def masked_ssim(x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor,
+                window: torch.Tensor) -> torch.Tensor:
+    """Differentiable (in ``x``) mean SSIM over ``mask`` of [H, W, 3] images; ``window`` is the
+    normalised 1-D Gaussian of odd length (requires ``available()``)."""
+    return MaskedSsimFn.apply(x, y, mask, window)
 
 
 def composite(m2: torch.Tensor, con: torch.Tensor, op: torch.Tensor, col: torch.Tensor,

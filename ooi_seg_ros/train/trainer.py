@@ -22,7 +22,7 @@ import torch
 from ..core.types import CameraIntrinsics, Capture, InputError
 from . import mcmc
 from .gaussians import GaussianModel, MAX_SH_DEGREE, init_from_points
-from .loss import masked_psnr, masked_ssim, photometric_loss
+from .loss import SSIM_SIZE, mask_crop, masked_psnr, masked_ssim, photometric_loss
 from .raster_common import RasterCamera
 
 
@@ -69,6 +69,11 @@ class TrainConfig:
     # "gain" (3 per-channel gains), "affine" (gains + offsets) or "none". Centred over the
     # training views, so a held-out view (identity) is rendered at their mean exposure
     lr_exposure: float = 5e-3  # learning rate of the per-view log-gains / offsets
+    crop_to_mask: bool = True  # render and score only each training view's mask bounding box
+    # grown by the SSIM window's half size: the loss is the same (pixels outside the mask carry
+    # none), the renders cost less. The composite over the background holds inside the crop
+    coarse_frac: float = 0.0  # train on 2x2-averaged views (a quarter of the pixels) for this
+    # fraction of the schedule, then at full resolution
 
 
 @dataclass
@@ -160,11 +165,63 @@ def undistort(image: np.ndarray, mask: Optional[np.ndarray],
 
 
 @dataclass
+class _Target:
+    """What one training step renders and scores: a camera and its image and mask."""
+
+    cam: RasterCamera
+    image: torch.Tensor  # [h, w, 3] float in [0, 1]
+    mask: torch.Tensor  # [h, w] bool
+
+
+@dataclass
 class _Frame:
     key: str
     cam: RasterCamera
     image: torch.Tensor  # [H, W, 3] float in [0, 1]
     mask: torch.Tensor  # [H, W] bool
+    levels: list[_Target] = field(default_factory=list)  # training targets: full, half size
+
+
+def _crop_camera(cam: RasterCamera, rows: slice, cols: slice) -> RasterCamera:
+    """The camera of the window ``rows`` x ``cols`` of ``cam``'s image (principal point moved,
+    same pixel grid), so a render of it equals that window of the full render."""
+    return RasterCamera(cam.R, cam.t, cam.fx, cam.fy, cam.cx - cols.start, cam.cy - rows.start,
+                        cols.stop - cols.start, rows.stop - rows.start)
+
+
+def _half_camera(cam: RasterCamera) -> RasterCamera:
+    """The camera of the 2x2-averaged image: pixel i covers full pixels 2i and 2i + 1, whose
+    centres average to 2i + 0.5 (pixel centres at integer coordinates)."""
+    return RasterCamera(cam.R, cam.t, cam.fx / 2, cam.fy / 2, (cam.cx - 0.5) / 2,
+                        (cam.cy - 0.5) / 2, cam.width // 2, cam.height // 2)
+
+
+def _target(cam: RasterCamera, image: torch.Tensor, mask: torch.Tensor,
+            crop: bool) -> _Target:
+    """A training target, cut to the mask's bounding box grown by the SSIM window's half size
+    when ``crop`` (the loss sees no pixel outside that box; ``photometric_loss`` crops the
+    same box)."""
+    if not crop:
+        return _Target(cam, image, mask)
+    rows, cols = mask_crop(mask, SSIM_SIZE // 2)
+    return _Target(_crop_camera(cam, rows, cols), image[rows, cols].contiguous(),
+                   mask[rows, cols].contiguous())
+
+
+def _levels(f: _Frame, cfg: TrainConfig) -> list[_Target]:
+    """Full-size and half-size training targets of a frame (the half-size mask keeps pixels
+    at least half covered by the full-size mask)."""
+    crop = cfg.crop_to_mask and not cfg.full_image
+    out = [_target(f.cam, f.image, f.mask, crop)]
+    if cfg.coarse_frac > 0:
+        h2, w2 = f.cam.height // 2, f.cam.width // 2
+        img = f.image[:2 * h2, :2 * w2].reshape(h2, 2, w2, 2, 3).mean((1, 3))
+        cover = f.mask[:2 * h2, :2 * w2].float().reshape(h2, 2, w2, 2).mean((1, 3))
+        mask = cover >= 0.5
+        if not bool(mask.any()):
+            mask = cover > 0
+        out.append(_target(_half_camera(f.cam), img, mask, crop))
+    return out
 
 
 def _prepare(capture: Capture, masks: Optional[dict[str, np.ndarray]], cfg: TrainConfig,
@@ -196,6 +253,8 @@ def _prepare(capture: Capture, masks: Optional[dict[str, np.ndarray]], cfg: Trai
         frame = _Frame(view.key, RasterCamera.from_view(cam, view.pose),
                        torch.from_numpy(image.astype(np.float32) / 255.0), torch.from_numpy(mask))
         is_held = cfg.holdout_every > 0 and idx % cfg.holdout_every == 0
+        if not is_held:
+            frame.levels = _levels(frame, cfg)
         (held if is_held else train).append(frame)
     if not train:
         raise InputError("no usable training views (all held out, without pose or with empty "
@@ -424,24 +483,26 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
             order = torch.randperm(len(train_frames), generator=gen).tolist()
         fi = order.pop()
         f = train_frames[fi]
+        tg = f.levels[1 if cfg.coarse_frac > 0 and frac < cfg.coarse_frac else 0]
         if cfg.full_image or cfg.background == "black":
             bg = torch.zeros(3)
         elif cfg.background == "white":
             bg = torch.ones(3)
         else:
             bg = torch.rand(3, generator=gen)
-        out = render(model, f.cam, bg)
+        out = render(model, tg.cam, bg)
         image = out.image if expo is None else _apply_exposure(out.image, out.alpha, bg, expo, fi)
         if cfg.full_image:
-            gt, mask = f.image, None
+            gt, mask = tg.image, None
         else:
-            m3 = f.mask[..., None].to(f.image.dtype)
-            gt, mask = f.image * m3 + bg * (1 - m3), f.mask
+            m3 = tg.mask[..., None].to(tg.image.dtype)
+            gt, mask = tg.image * m3 + bg * (1 - m3), tg.mask
         loss = photometric_loss(image, gt, mask, cfg.lambda_dssim)
         total = loss + mcmc.regularisation(model, cfg.opacity_reg, cfg.scale_reg)
         if mask is not None and cfg.bg_alpha_reg > 0:
             # background pixels carry no photometric loss, so nothing else stops Gaussians
             # from spilling opacity there: keep the object's silhouette inside the mask
+            # (inside the rendered window: the mask's box when crop_to_mask)
             outside = ~mask
             if bool(outside.any()):
                 total = total + cfg.bg_alpha_reg * out.alpha[outside].mean()
@@ -457,7 +518,7 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
         if opt_expo is not None:
             opt_expo.step()
         mcmc.inject_noise(model, lr_m, cfg.noise_lr)
-        if not all(torch.isfinite(p).all() for p in model.params().values()):
+        if not _all_finite(model):
             result.nan_steps += 1
             _restore(model, good)
             continue
@@ -496,6 +557,14 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
         result.exposure = _centred(expo.detach()).numpy().copy()
     result.heldout_keys = [f.key for f in held_frames]
     return result
+
+
+@torch.no_grad()
+def _all_finite(model: GaussianModel) -> bool:
+    """True when no parameter holds a NaN or an infinity, from one sum per tensor (a sum is
+    finite only if every element is, barring an overflow of float32, which would be as bad):
+    ~0.1 ms per step at 20k Gaussians instead of ~4 ms for element-wise tests."""
+    return all(math.isfinite(float(p.sum())) for p in model.params().values())
 
 
 def _adam(groups: list) -> torch.optim.Optimizer:
