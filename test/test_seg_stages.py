@@ -332,3 +332,62 @@ def test_merge_reach_scale_takes_a_part_just_past_the_core_not_a_neighbour():
     assert (k1 < 2000).sum() == 2000 and (k1 >= 2000).sum() == 0
     assert (k2 < 2000).sum() == 2000 and ((k2 >= 2000) & (k2 < 2150)).sum() == 150
     assert (k2 >= 2150).sum() == 0 and p["chosen_clusters"] == 2
+
+
+def test_edge_matte_grows_an_eroded_mask_to_the_half_coverage_outline():
+    """A two-colour disc with an anti-aliased outline: a mask one pixel inside the truth
+    (coverage >= 0.5) grows back onto it, and nothing far from the outline is added."""
+    from ooi_seg_ros.seg.refine import edge_matte
+    h, w, s = 60, 80, 8
+    yy, xx = np.mgrid[0:h * s, 0:w * s]
+    inside = ((xx + 0.5) / s - 40.3) ** 2 + ((yy + 0.5) / s - 29.6) ** 2 < 17.2 ** 2
+    cover = inside.reshape(h, s, w, s).mean(axis=(1, 3))
+    img = (np.array([40.0, 90.0, 60.0]) * (1 - cover[..., None])
+           + np.array([210.0, 180.0, 60.0]) * cover[..., None])
+    img = np.clip(img + np.random.default_rng(0).normal(0, 3, img.shape), 0, 255)
+    gt = cover >= 0.5
+    mask = ndimage.binary_erosion(gt, np.ones((3, 3), bool))
+    out = edge_matte(img.astype(np.uint8), mask, 7)
+    assert (out & ~mask).sum() > 0.8 * (gt & ~mask).sum()  # most of the lost ring is back
+    assert (out & ~gt).sum() <= 0.05 * (gt & ~mask).sum()  # almost nothing beyond the truth
+    assert not (out & ~ndimage.binary_dilation(mask, np.ones((3, 3), bool))).any()
+    assert (edge_matte(img.astype(np.uint8), mask, 0) == mask).all()  # 0 = off
+
+
+def test_behind_check_calls_background_behind_the_object_not_the_object():
+    """Background seen past the object (sim tabletop: chair, shelves, wall) is called
+    background at the depth of the nearest background point beyond the object; the object is
+    (almost) never."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    from ooi_seg_ros.sim import simulate_capture
+    sim = simulate_capture("tabletop", n_views=24, width=256, height=192, seed=0)
+    views = sim.capture.views
+    target = np.mean(sim.capture.gt_ooi_points, axis=0)
+    rng = np.random.default_rng(0)
+    pts = []
+    for i in range(0, 24, 2):  # sparse "SfM" background points: depths of background pixels
+        v = views[i]
+        dirs = undistorted_dirs(v.camera).reshape(192, 256, 3) @ v.pose.R.T
+        p = v.pose.t + dirs * sim.depths[i][..., None]
+        bg = ~v.gt_mask & np.isfinite(sim.depths[i])
+        cand = p[bg]
+        pts.append(cand[rng.choice(len(cand), 400, replace=False)])
+    cfg = PlaneCheckConfig(enabled=True, max_deg=40.0, behind=True)
+    below = np.array([0.0, 0.0, 1.0, 1e3])  # a plane far below: only the behind test acts
+    pc = PlaneConsistency(views, below, target, cfg)
+    pc.behind_xyz = np.vstack(pts)
+    pc.ooi_xyz = sim.capture.gt_ooi_points
+    obj_hit = obj_n = bg_hit = bg_n = 0
+    for i in range(1, 24, 4):
+        v = views[i]
+        fl = pc.floor_map(i, (0, 192, 0, 256))
+        zo = project_distorted(pc.ooi_xyz, v.camera, v.pose)[1]
+        behind = sim.depths[i] > np.quantile(zo, 0.98)  # truly beyond the object
+        near = ndimage.binary_dilation(v.gt_mask, iterations=8) & ~v.gt_mask & behind
+        obj_hit += (fl & v.gt_mask).sum()
+        obj_n += v.gt_mask.sum()
+        bg_hit += (fl & near).sum()
+        bg_n += near.sum()
+    print("object called background", obj_hit / obj_n, "background near it", bg_hit / bg_n)
+    assert obj_hit < 0.02 * obj_n
+    assert bg_hit > 0.08 * bg_n

@@ -4,10 +4,13 @@
 default) adds the signals an orbit gives for free: the camera-framing region of interest, a
 camera-aware support-plane rule, the DBSCAN cluster the cameras look at, masks splatted from
 the OOI points (no Poisson balloon), and a per-view GrabCut refinement seeded by the
-projections of the OOI points, in which every pixel that shows the support plane or a
-background wall (plane-induced photo-consistency with nearby views, ``photo.py``) is sure
-background. Each stage is a function with a typed input and output and its own config
-dataclass, so stages can be swapped by configuration.
+projections of the OOI points, in which every pixel that shows the support plane, a
+background wall (plane-induced photo-consistency with nearby views, ``photo.py``) or the
+background beyond the object (the same test at the depth of the nearest background SfM point
+behind it) is sure background; the refined outline then takes the ring pixels whose colour
+is nearer the object's than the background's (``refine.edge_matte``). Each stage is a
+function with a typed input and output and its own config dataclass, so stages can be
+swapped by configuration.
 """
 
 from __future__ import annotations
@@ -70,9 +73,9 @@ def preset(method: str) -> dict:
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
                           "splat_scale": 0.6, "hull_consistency": False,
                           "hull_carve": False},
-                "refine": {"enabled": True, "fg_seeds": "projections",
+                "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
                            "plane_check": {"enabled": True, "over_seeds": True,
-                                           "extra_planes": 3}}}
+                                           "extra_planes": 3, "behind": True}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 

@@ -43,6 +43,9 @@ class RefineConfig:
     voronoi: bool = False  # silhouette pixels nearer a background than an object observation
     # start as probably-background instead of probably-object
     opening: int = 1  # iterations of the binary opening that removes specks from the result
+    edge_window: int = 0  # outline matting: a pixel just outside the mask joins it when its
+    # colour is nearer the mean of the object pixels than of the background pixels within this
+    # window (px) around it; 0 = off (see ``edge_matte``)
     seed: int = 0  # seed of OpenCV's RNG (GrabCut's colour-model initialisation)
     plane_check: PlaneCheckConfig = field(default_factory=PlaneCheckConfig)  # pixels whose
     # colour the support plane explains (photo-consistent with nearby views) are background
@@ -195,6 +198,41 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
     return out, refined, rejected
 
 
+def edge_matte(img: np.ndarray, mask: np.ndarray, window: int) -> np.ndarray:
+    """``mask`` grown by the pixels of its 1-px outer ring that look more like the object.
+
+    An image's outline pixels mix object and background colour (anti-aliasing, lens blur); a
+    pixel at least half covered by the object is object (the usual truth convention). For a
+    ring pixel, the colour it would have if it were object (background) is estimated as the
+    mean of the mask's interior (the background beyond the ring) within ``window`` px; the
+    pixel joins the mask when its colour is nearer the object's mean -- the coverage > 0.5 test
+    of a two-colour mix. Only growth: GrabCut's result (a graph cut on reduced crops, then an
+    opening) lies inside the true outline more often than outside it (measured).
+    """
+    if window <= 1 or not mask.any():
+        return mask
+    st = np.ones((3, 3), bool)
+    inner = ndimage.binary_erosion(mask, st, border_value=1)
+    grown = ndimage.binary_dilation(mask, st)
+    ring = grown & ~mask
+    outer = ~grown
+    im = img.astype(np.float32)
+    fi, fo = inner.astype(np.float32), outer.astype(np.float32)
+    nf = ndimage.uniform_filter(fi, window, mode="constant")
+    nb = ndimage.uniform_filter(fo, window, mode="constant")
+    ok = ring & (nf > 1e-6) & (nb > 1e-6)
+    if not ok.any():
+        return mask
+    dF = np.zeros(mask.shape, np.float32)
+    dG = np.zeros(mask.shape, np.float32)
+    for c in range(im.shape[2]):
+        F = ndimage.uniform_filter(im[..., c] * fi, window, mode="constant")
+        G = ndimage.uniform_filter(im[..., c] * fo, window, mode="constant")
+        dF += (im[..., c] - F / np.maximum(nf, 1e-6)) ** 2
+        dG += (im[..., c] - G / np.maximum(nb, 1e-6)) ** 2
+    return mask | (ok & (dF <= dG))
+
+
 def point_support(xyz: np.ndarray, masks: dict[str, np.ndarray], views: list[View]
                   ) -> np.ndarray:
     """Share [N] of the views that frame each point whose mask contains its projection."""
@@ -238,6 +276,9 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     if cfg.plane_check.enabled and plane is not None and target is not None:
         floor = PlaneConsistency(views, np.asarray(plane, float), np.asarray(target, float),
                                  cfg.plane_check)
+        if cfg.plane_check.behind:
+            floor.behind_xyz = background.xyz
+            floor.ooi_xyz = ooi.xyz
     cache: dict = {}
     if cfg.fg_seeds == "observations":
         out, refined, rejected = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg, floor, cache)
@@ -255,6 +296,10 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     else:
         raise ValueError(f"refine.fg_seeds={cfg.fg_seeds!r}; use observations, projections "
                          f"or consistent")
+    if cfg.edge_window > 1:
+        for v in views:
+            if v.key in out:
+                out[v.key] = edge_matte(v.get_image(), out[v.key], int(cfg.edge_window))
     params.update({"refined": refined, "rejected": rejected})
     if floor is not None:
         params["plane_check_s"] = round(floor.seconds, 3)
