@@ -7,7 +7,8 @@ cause that applies, from data the pipeline already has plus the simulator's trut
 FN (object pixel called background):
   ``outline``   within ``--outline`` px of the true outline (the simulator anti-aliases it:
                 a 1-px error there is a rounding of the truth, not a segmentation fault)
-  ``plane``     the plane check (``photo.py``) called the pixel floor/wall: sure background
+  ``plane``     the plane check (``photo.py``) called the pixel floor, wall or background
+                beyond the object: sure background
   ``no-seed``   outside the splatted silhouette of the OOI points: no point near it, GrabCut
                 had to reach it by colour alone
   ``grabcut``   inside the silhouette, not floor: GrabCut's colour models said background
