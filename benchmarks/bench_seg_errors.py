@@ -27,6 +27,9 @@ overlay of the worst views per scene coloured by cause (``--figure``).
 
     OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python benchmarks/bench_seg_errors.py \
         --scenes aircraft tabletop bicycle toycar --figure /tmp/seg_errors.png
+    # the same on the session-4 default (before the behind test and the outline matting)
+    OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python benchmarks/bench_seg_errors.py \
+        --set '{"refine": {"edge_window": 0, "plane_check": {"behind": false}}}'
 """
 
 from __future__ import annotations
@@ -118,7 +121,7 @@ def attribute(scene: str, args) -> dict:
     keys = [v.key for v in views[::args.view_step]] if args.view_step > 1 else None
     photo.PlaneConsistency.floor_map = record
     try:
-        cfg = make_config("ours", {"seed": 0})
+        cfg = make_config("ours", dict(json.loads(args.set or "{}"), seed=0))
         t0 = time.perf_counter()
         r = segment(cap, cloud, cfg, mask_keys=keys)
         dt = time.perf_counter() - t0
@@ -213,9 +216,13 @@ def main() -> None:
     ap.add_argument("--worst", type=int, default=3, help="views per scene in the figure")
     ap.add_argument("--figure", help="write the cause overlay of the worst views here")
     ap.add_argument("--json", help="write the counts here")
+    ap.add_argument("--set", metavar="JSON",
+                    help='overrides of the default, e.g. the session-4 default: \'{"refine": '
+                         '{"edge_window": 0, "plane_check": {"behind": false}}}\'')
     args = ap.parse_args()
     results = [attribute(s, args) for s in args.scenes]
-    print(f"\nerror pixels by cause, default `ours`, {args.size}, {args.views} views"
+    print(f"\nerror pixels by cause, `ours` {args.set or '(default)'}, {args.size}, "
+          f"{args.views} views"
           f"{'' if args.view_step == 1 else f' (every {args.view_step}th scored)'}; "
           f"share = of the scene's FN+FP pixels")
     head = (["scene", "IoU", "recall", "FN+FP"] + [f"FN {c}" for c in FN_CAUSES]
