@@ -54,17 +54,40 @@ class FloorConfig:
     seed: int = 0  # RANSAC seed
 
 
-def _fit_plane(xyz: np.ndarray, thr: float, iters: int, seed: int
+def _fit_plane(xyz: np.ndarray, thr: float, iters: int, seed: int, score_sample: int = 20000
                ) -> tuple[np.ndarray, np.ndarray]:
-    """Plane (a,b,c,d) with unit normal and inlier indices via open3d RANSAC."""
-    import open3d as o3d
-    o3d.utility.random.seed(int(seed))
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
-    model, inl = pc.segment_plane(distance_threshold=float(thr), ransac_n=3,
-                                  num_iterations=int(iters))
-    m = np.asarray(model, float)
-    m /= np.linalg.norm(m[:3])
-    return m, np.asarray(inl, np.int64)
+    """Plane (a,b,c,d) with unit normal and its inlier indices, by a seeded RANSAC.
+
+    ``iters`` planes through random point triples are scored by their inliers (distance <
+    ``thr``) among at most ``score_sample`` points of the cloud; the best is refined by least
+    squares through its inliers, whose indices over the whole cloud are returned. Written
+    here rather than open3d's ``segment_plane`` because that one is not reproducible: with
+    the same seed and one thread it returned different planes from call to call (40 calls on
+    a test scene: six different results, three of which cut the object away).
+    """
+    n = len(xyz)
+    rng = np.random.default_rng(seed)
+    if n < 3:
+        return np.array([0.0, 0.0, 1.0, 0.0]), np.zeros(0, np.int64)
+    tri = rng.integers(0, n, (max(1, int(iters)), 3))
+    p0 = xyz[tri[:, 0]]
+    nrm = np.cross(xyz[tri[:, 1]] - p0, xyz[tri[:, 2]] - p0)
+    length = np.linalg.norm(nrm, axis=1)
+    valid = length > 1e-12 * max(float(np.ptp(xyz, axis=0).max()), 1e-12) ** 2
+    nrm = nrm / np.where(valid, length, 1.0)[:, None]
+    off = -(nrm * p0).sum(axis=1)
+    pts = xyz if n <= score_sample else xyz[rng.choice(n, score_sample, replace=False)]
+    count = np.zeros(len(tri), np.int64)
+    for s in range(0, len(pts), 4096):
+        count += (np.abs(pts[s:s + 4096] @ nrm.T + off) < thr).sum(axis=0)
+    count[~valid] = -1
+    best = int(np.argmax(count))
+    plane = np.append(nrm[best], off[best]) if valid[best] else np.array([0.0, 0.0, 1.0, 0.0])
+    inl = np.nonzero(np.abs(xyz @ plane[:3] + plane[3]) < thr)[0]
+    if len(inl) >= 3:
+        plane = _refit(xyz[inl], plane)
+        inl = np.nonzero(np.abs(xyz @ plane[:3] + plane[3]) < thr)[0]
+    return plane, inl.astype(np.int64)
 
 
 def _refit(pts: np.ndarray, plane: np.ndarray) -> np.ndarray:
