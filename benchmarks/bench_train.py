@@ -24,12 +24,12 @@ import numpy as np
 import torch
 
 from ooi_seg_ros.train.loss import masked_psnr, masked_ssim
-from ooi_seg_ros.train.raster_common import RasterCamera
+from ooi_seg_ros.train.raster_common import LOWPASS, RasterCamera
 from ooi_seg_ros.train.raster_cpu import render
 from ooi_seg_ros.train.trainer import TrainConfig, train
 
 
-def _score_truth(model, sim, keys) -> tuple[float, float]:
+def _score_truth(model, sim, keys, lowpass: float = LOWPASS) -> tuple[float, float]:
     """Mean held-out (PSNR, SSIM) inside the true mask against the simulator's object-only
     truth (``SimCapture.object_truth``: outline pixels hold the object's share only, the
     view's exposure, no sensor noise) instead of the photo: what an exact object-only model
@@ -39,7 +39,8 @@ def _score_truth(model, sim, keys) -> tuple[float, float]:
     with torch.no_grad():
         for k in keys:
             v = sim.capture.views[index[k]]
-            img = render(model, RasterCamera.from_view(v.camera, v.pose), torch.zeros(3)).image
+            img = render(model, RasterCamera.from_view(v.camera, v.pose, lowpass=lowpass),
+                         torch.zeros(3)).image
             m = torch.from_numpy(v.gt_mask)
             gt = torch.from_numpy(sim.object_truth(index[k])) * m[..., None]
             ps.append(masked_psnr(img, gt, m))
@@ -47,7 +48,7 @@ def _score_truth(model, sim, keys) -> tuple[float, float]:
     return float(np.mean(ps)), float(np.mean(ss))
 
 
-def _score(model, capture, keys) -> tuple[float, float, float, float]:
+def _score(model, capture, keys, lowpass: float = LOWPASS) -> tuple[float, float, float, float]:
     """Mean held-out (PSNR, SSIM) inside the true mask, PSNR inside the mask eroded by one
     pixel, and that interior PSNR after a per-channel gain fitted to each held-out view.
 
@@ -64,7 +65,8 @@ def _score(model, capture, keys) -> tuple[float, float, float, float]:
     with torch.no_grad():
         for k in keys:
             v = views[k]
-            img = render(model, RasterCamera.from_view(v.camera, v.pose), torch.zeros(3)).image
+            img = render(model, RasterCamera.from_view(v.camera, v.pose, lowpass=lowpass),
+                         torch.zeros(3)).image
             m = torch.from_numpy(v.gt_mask)
             gt = torch.from_numpy(v.image.astype(np.float32) / 255.0) * m[..., None]
             ps.append(masked_psnr(img, gt, m))
@@ -167,8 +169,8 @@ def main() -> None:
             kw.update(extra)
             cfg = TrainConfig(**kw)
             r = train(cap, None if cfg.full_image else masks, pts, cfg)
-            p, s, pi, pg = _score(r.model, cap, r.heldout_keys)
-            pt, st = _score_truth(r.model, sim, r.heldout_keys)
+            p, s, pi, pg = _score(r.model, cap, r.heldout_keys, cfg.lowpass)
+            pt, st = _score_truth(r.model, sim, r.heldout_keys, cfg.lowpass)
             print(f"{scene:>10} {name:>11} {r.iterations_done:>6} {len(r.model):>6} "
                   f"{p:>10.2f} {s:>10.3f} {pi:>14.2f} {pg:>8.2f} "
                   f"{f'{pt:.2f} / {st:.3f}':>20} {r.cpu_seconds:>7.0f} {r.seconds:>7.0f}",

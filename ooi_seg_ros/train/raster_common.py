@@ -41,15 +41,17 @@ class RasterCamera:
     cy: float
     width: int
     height: int
+    lowpass: float = LOWPASS  # pixel^2 added to every 2D covariance's diagonal (see LOWPASS)
 
     @staticmethod
     def from_view(camera: CameraIntrinsics, pose: Pose, dtype: torch.dtype = torch.float32,
-                  device: str = "cpu") -> "RasterCamera":
+                  device: str = "cpu", lowpass: float = LOWPASS) -> "RasterCamera":
         R, t = pose.world_to_cam()
         return RasterCamera(torch.as_tensor(np.asarray(R), dtype=dtype, device=device),
                             torch.as_tensor(np.asarray(t), dtype=dtype, device=device),
                             float(camera.fx), float(camera.fy), float(camera.cx),
-                            float(camera.cy), int(camera.width), int(camera.height))
+                            float(camera.cy), int(camera.width), int(camera.height),
+                            float(lowpass))
 
     @property
     def center(self) -> torch.Tensor:  # [3] camera centre in the world
@@ -57,7 +59,7 @@ class RasterCamera:
 
     def to(self, dtype: torch.dtype) -> "RasterCamera":
         return RasterCamera(self.R.to(dtype), self.t.to(dtype), self.fx, self.fy, self.cx,
-                            self.cy, self.width, self.height)
+                            self.cy, self.width, self.height, self.lowpass)
 
 
 @dataclass
@@ -137,9 +139,9 @@ def project(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     cov3 = covariance_3d(log_scales, quats)
     JW = J @ cam.R
     cov2 = JW @ cov3 @ JW.transpose(1, 2)
-    a = cov2[:, 0, 0] + LOWPASS
+    a = cov2[:, 0, 0] + cam.lowpass
     b = cov2[:, 0, 1]
-    c = cov2[:, 1, 1] + LOWPASS
+    c = cov2[:, 1, 1] + cam.lowpass
     det = a * c - b * b
     ok_det = det > 1e-12
     det_s = torch.where(ok_det, det, torch.ones_like(det))

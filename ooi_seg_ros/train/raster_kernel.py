@@ -43,7 +43,7 @@ from typing import Optional
 
 import torch
 
-from .raster_common import (ALPHA_MAX, ALPHA_MIN, LOWPASS, NEAR, Projected, RasterCamera,
+from .raster_common import (ALPHA_MAX, ALPHA_MIN, NEAR, Projected, RasterCamera,
                             T_MIN)
 
 log = logging.getLogger(__name__)
@@ -962,7 +962,7 @@ def _cam_array(cam: RasterCamera) -> torch.Tensor:
     limx = 1.3 * max(cam.cx, cam.width - cam.cx) / cam.fx
     limy = 1.3 * max(cam.cy, cam.height - cam.cy) / cam.fy
     head = torch.cat([cam.R.reshape(-1), cam.t.reshape(-1), cam.center.reshape(-1)])
-    tail = torch.tensor([cam.fx, cam.fy, cam.cx, cam.cy, limx, limy, LOWPASS, NEAR],
+    tail = torch.tensor([cam.fx, cam.fy, cam.cx, cam.cy, limx, limy, cam.lowpass, NEAR],
                         dtype=torch.float64)
     return torch.cat([head.detach().to(torch.float64), tail]).contiguous()
 

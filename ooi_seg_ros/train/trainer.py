@@ -23,7 +23,7 @@ from ..core.types import CameraIntrinsics, Capture, InputError
 from . import mcmc
 from .gaussians import GaussianModel, MAX_SH_DEGREE, init_from_points
 from .loss import SSIM_SIZE, mask_crop, masked_psnr, masked_ssim, photometric_loss
-from .raster_common import RasterCamera
+from .raster_common import LOWPASS, RasterCamera
 
 
 @dataclass
@@ -72,6 +72,8 @@ class TrainConfig:
     crop_to_mask: bool = True  # render and score only each training view's mask bounding box
     # grown by the SSIM window's half size: the loss is the same (pixels outside the mask carry
     # none), the renders cost less. The composite over the background holds inside the crop
+    lowpass: float = LOWPASS  # pixel^2 added to each Gaussian's 2D covariance when rendering
+    # (3DGS: 0.3). The held-out renders use the same value; viewers of the PLY assume 0.3
     coarse_frac: float = 0.0  # train on 2x2-averaged views (a quarter of the pixels) for this
     # fraction of the schedule, then at full resolution
 
@@ -186,14 +188,14 @@ def _crop_camera(cam: RasterCamera, rows: slice, cols: slice) -> RasterCamera:
     """The camera of the window ``rows`` x ``cols`` of ``cam``'s image (principal point moved,
     same pixel grid), so a render of it equals that window of the full render."""
     return RasterCamera(cam.R, cam.t, cam.fx, cam.fy, cam.cx - cols.start, cam.cy - rows.start,
-                        cols.stop - cols.start, rows.stop - rows.start)
+                        cols.stop - cols.start, rows.stop - rows.start, cam.lowpass)
 
 
 def _half_camera(cam: RasterCamera) -> RasterCamera:
     """The camera of the 2x2-averaged image: pixel i covers full pixels 2i and 2i + 1, whose
     centres average to 2i + 0.5 (pixel centres at integer coordinates)."""
     return RasterCamera(cam.R, cam.t, cam.fx / 2, cam.fy / 2, (cam.cx - 0.5) / 2,
-                        (cam.cy - 0.5) / 2, cam.width // 2, cam.height // 2)
+                        (cam.cy - 0.5) / 2, cam.width // 2, cam.height // 2, cam.lowpass)
 
 
 def _target(cam: RasterCamera, image: torch.Tensor, mask: torch.Tensor,
@@ -250,7 +252,7 @@ def _prepare(capture: Capture, masks: Optional[dict[str, np.ndarray]], cfg: Trai
         if not mask.any():
             result.skipped_empty_mask += 1
             continue
-        frame = _Frame(view.key, RasterCamera.from_view(cam, view.pose),
+        frame = _Frame(view.key, RasterCamera.from_view(cam, view.pose, lowpass=cfg.lowpass),
                        torch.from_numpy(image.astype(np.float32) / 255.0), torch.from_numpy(mask))
         is_held = cfg.holdout_every > 0 and idx % cfg.holdout_every == 0
         if not is_held:
