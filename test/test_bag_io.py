@@ -88,7 +88,8 @@ def test_written_file_is_rosbag2_shaped(tmp_path):
         assert {sc.encoding for sc in s.schemas.values()} == {"ros2msg"}
         for ch in s.channels.values():
             assert ch.message_encoding == "cdr"
-            assert yaml.safe_load(ch.metadata["offered_qos_profiles"])[0]["history"] == 1
+            assert yaml.safe_load(ch.metadata["offered_qos_profiles"])[0]["history"] == \
+                "keep_last"  # rosbag2 metadata version 9: rmw enum names
             assert ch.metadata["topic_type_hash"].startswith("RIHS01_")
         assert {ci.compression for ci in s.chunk_indexes} == {"zstd"}
         meta = [m for m in reader.iter_metadata() if m.name == "rosbag2"]

@@ -26,24 +26,93 @@ from . import msgdefs
 
 log = logging.getLogger(__name__)
 
-_INF_SEC, _INF_NSEC = 9223372036, 854775807
+_INF_SEC, _INF_NSEC = 9223372036, 854775807  # RMW_DURATION_INFINITE
+# rosbag2 metadata version written: 9 (Jazzy) stores QoS enums as rmw names ("reliable"), and
+# the topic list's offered_qos_profiles as a YAML list, not a string. A reader takes the
+# version from the file and parses the channels' QoS accordingly, so the two must agree: an
+# integer enum in a version 9 file reads as "unknown" in rosbag2.
+ROSBAG2_VERSION = 9
 
 
-def _qos_yaml(history: int, depth: int, reliability: int, durability: int) -> str:
-    """A one-profile ``offered_qos_profiles`` string in rosbag2's (Jazzy) layout."""
-    return (f"- history: {history}\n  depth: {depth}\n  reliability: {reliability}\n"
-            f"  durability: {durability}\n  deadline:\n    sec: {_INF_SEC}\n"
-            f"    nsec: {_INF_NSEC}\n  lifespan:\n    sec: {_INF_SEC}\n    nsec: {_INF_NSEC}\n"
-            f"  liveliness: 1\n  liveliness_lease_duration:\n    sec: {_INF_SEC}\n"
-            f"    nsec: {_INF_NSEC}\n  avoid_ros_namespace_conventions: false")
+# rmw's enum names by integer value (rosbag2 writes the names from metadata version 9 on).
+_QOS_ENUMS = {
+    "history": ("system_default", "keep_last", "keep_all", "unknown"),
+    "reliability": ("system_default", "reliable", "best_effort", "unknown", "best_available"),
+    "durability": ("system_default", "transient_local", "volatile", "unknown", "best_available"),
+    "liveliness": ("system_default", "automatic", "manual_by_node", "manual_by_topic",
+                   "unknown", "best_available"),
+}
+# "Infinite" durations that pre-Galactic rmw implementations reported; rosbag2 reads them as
+# RMW_DURATION_INFINITE, so they are written as that.
+_OLD_INFINITE = {(2147483647, 4294967295), (2147483647, 2147483647)}
 
 
-# rmw enums: history 1 keep_last; reliability 1 reliable, 2 best_effort;
-# durability 1 transient_local, 2 volatile.
+def _qos_enum(key: str, value: Any, version: int) -> Any:
+    """One QoS policy value as an rmw name (version >= 9) or its integer (version <= 8)."""
+    names = _QOS_ENUMS[key]
+    if isinstance(value, bool) or value is None:
+        value = 0 if value is None else int(value)
+    if isinstance(value, int):
+        idx = value if 0 <= value < len(names) else names.index("unknown")
+    else:
+        s = str(value).strip().lower()
+        if s.isdigit():
+            idx = int(s) if int(s) < len(names) else names.index("unknown")
+        else:
+            idx = names.index(s) if s in names else names.index("unknown")
+    return names[idx] if version >= 9 else idx
+
+
+def _qos_time(value: Any) -> dict:
+    """A ``{sec, nsec}`` duration; old infinities become RMW_DURATION_INFINITE."""
+    if not isinstance(value, dict):
+        return {"sec": _INF_SEC, "nsec": _INF_NSEC}
+    sec, nsec = int(value.get("sec", _INF_SEC)), int(value.get("nsec", _INF_NSEC))
+    if (sec, nsec) in _OLD_INFINITE:
+        sec, nsec = _INF_SEC, _INF_NSEC
+    return {"sec": sec, "nsec": nsec}
+
+
+def qos_profiles(qos: str, version: int = ROSBAG2_VERSION) -> list[dict]:
+    """The profiles of an ``offered_qos_profiles`` YAML in rosbag2's layout for ``version``.
+
+    Enums become rmw names (version >= 9, as Jazzy's rosbag2 writes and reads them) or
+    integers (version <= 8); keys come in rosbag2's order; missing fields get rosbag2's
+    defaults (keep_last 0, infinite durations).
+    """
+    parsed = yaml.safe_load(qos) if qos else []
+    out = []
+    for p in parsed or []:
+        p = p if isinstance(p, dict) else {}
+        out.append({
+            "history": _qos_enum("history", p.get("history", 1), version),
+            "depth": int(p.get("depth", 0) or 0),
+            "reliability": _qos_enum("reliability", p.get("reliability", 1), version),
+            "durability": _qos_enum("durability", p.get("durability", 2), version),
+            "deadline": _qos_time(p.get("deadline")),
+            "lifespan": _qos_time(p.get("lifespan")),
+            "liveliness": _qos_enum("liveliness", p.get("liveliness", 1), version),
+            "liveliness_lease_duration": _qos_time(p.get("liveliness_lease_duration")),
+            "avoid_ros_namespace_conventions": bool(p.get("avoid_ros_namespace_conventions",
+                                                          False)),
+        })
+    return out
+
+
+def canonical_qos(qos: str, version: int = ROSBAG2_VERSION) -> str:
+    """``offered_qos_profiles`` text as rosbag2 writes it into an MCAP channel (see
+    ``qos_profiles``); "" for no profiles."""
+    profiles = qos_profiles(qos, version)
+    if not profiles:
+        return ""
+    return yaml.safe_dump(profiles, sort_keys=False, default_flow_style=False).rstrip("\n")
+
+
+# The presets in rosbag2's current layout (metadata version 9): rmw enum names.
 QOS_PRESETS = {
-    "sensor_data": _qos_yaml(1, 5, 2, 2),
-    "reliable": _qos_yaml(1, 10, 1, 2),
-    "transient_local": _qos_yaml(1, 1, 1, 1),
+    "sensor_data": canonical_qos("- {history: 1, depth: 5, reliability: 2, durability: 2}"),
+    "reliable": canonical_qos("- {history: 1, depth: 10, reliability: 1, durability: 2}"),
+    "transient_local": canonical_qos("- {history: 1, depth: 1, reliability: 1, durability: 1}"),
 }
 
 
@@ -61,7 +130,11 @@ def resolve_qos(qos: Optional[str]) -> str:
     if not isinstance(parsed, list) or not all(isinstance(p, dict) for p in parsed):
         raise InputError(f"QoS {qos[:40]!r} must be a preset {sorted(QOS_PRESETS)} or a YAML "
                          "list of profiles (rosbag2 offered_qos_profiles)")
-    return qos
+    try:
+        return canonical_qos(qos)
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise InputError(f"QoS {qos[:40]!r} has a value rosbag2 cannot hold ({exc}); depth "
+                         "and durations must be integers") from exc
 
 
 @dataclasses.dataclass
@@ -174,7 +247,7 @@ class BagWriter:
                                  "share/); install its interface package or pass definition=")
             self._schemas[type_name] = self._writer.register_schema(
                 name=type_name, encoding="ros2msg", data=text.encode("utf-8"))
-        qos_s = resolve_qos(qos)
+        qos_s = resolve_qos(qos)  # in rosbag2's layout for the version this file declares
         meta = {"offered_qos_profiles": qos_s}
         thash = msgdefs.type_hash(type_name) or ""
         if thash:
@@ -219,12 +292,12 @@ class BagWriter:
         dur = (self._t1 - self._t0) if self._t0 is not None else 0
         n = sum(t.count for t in self.topics.values())
         info = {
-            "version": 9, "storage_identifier": "mcap",
+            "version": ROSBAG2_VERSION, "storage_identifier": "mcap",
             "duration": {"nanoseconds": dur}, "starting_time": {"nanoseconds_since_epoch": t0},
             "message_count": n,
             "topics_with_message_count": [
                 {"topic_metadata": {"name": t.name, "type": t.type, "serialization_format": "cdr",
-                                    "offered_qos_profiles": t.qos,
+                                    "offered_qos_profiles": qos_profiles(t.qos),
                                     "type_description_hash": t.type_hash},
                  "message_count": t.count}
                 for t in sorted(self.topics.values(), key=lambda x: x.name)],
@@ -455,7 +528,9 @@ class BagReader:
             if idx.truncated or idx.error:
                 msg = (f"{f.name} has no valid summary/footer (truncated or damaged: "
                        f"{idx.error}); read {sum(idx.counts.values())} messages up to the "
-                       "damage. Repair with `mcap recover` to silence this")
+                       "damage. Other readers (rosbags, Foxglove, ros2 bag) reject such a "
+                       "file: repair it with `python -m ooi_seg_ros.bag.recover` (or `mcap "
+                       "recover`)")
                 self.warnings.append(msg)
                 log.warning(msg)
             self._idx.append(idx)
@@ -586,3 +661,60 @@ class BagReader:
         except Exception as exc:  # noqa: BLE001 — dynamic decoder errors
             raise InputError(f"cannot decode {type_name} on {topic} from its embedded "
                              f"definition ({exc})") from exc
+
+
+def recover_bag(src: Union[str, Path], dst: Union[str, Path]) -> int:
+    """Rewrites a bag cut short (recorder killed, disk full) as a finished file; returns the
+    number of messages kept.
+
+    Readers that need the summary and footer (rosbags, Foxglove's mcap_ros2 reader,
+    ``ros2 bag``) reject a file that lacks them; everything up to the damage is copied here,
+    byte for byte per message (log/publish time and sequence kept), with each topic's
+    schema text and QoS, and the file's other metadata records. It is what ``mcap recover``
+    does, for a ROS 2 bag.
+    """
+    from mcap.records import Channel, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+
+    src, dst = Path(src), Path(dst)
+    if src.resolve() == dst.resolve():
+        raise InputError(f"recover {src} into a new file, not over itself")
+    files = _bag_files(src)
+    schemas: dict[tuple[int, int], Any] = {}
+    channels: dict[tuple[int, int], Any] = {}
+    n = 0
+    with BagWriter(dst) as w:
+        for k, fpath in enumerate(files):
+            with open(fpath, "rb") as f:
+                it = StreamReader(f, record_size_limit=1 << 31, validate_crcs=True).records
+                while True:
+                    try:
+                        rec = next(it)
+                    except StopIteration:
+                        break
+                    except Exception as exc:  # noqa: BLE001 — damage ends the readable part
+                        log.warning("%s: stopped at damage (%s: %s) after %d messages",
+                                    fpath.name, type(exc).__name__, exc, n)
+                        break
+                    if isinstance(rec, Schema):
+                        schemas[(k, rec.id)] = rec
+                    elif isinstance(rec, Channel):
+                        channels[(k, rec.id)] = rec
+                    elif isinstance(rec, Metadata) and rec.name != "rosbag2":
+                        w.add_metadata(rec.name, dict(rec.metadata))
+                    elif isinstance(rec, Message):
+                        ch = channels.get((k, rec.channel_id))
+                        if ch is None:
+                            continue  # a message before its channel: not valid MCAP
+                        if ch.topic not in w.topics:
+                            sch = schemas.get((k, ch.schema_id))
+                            if sch is None or sch.encoding != "ros2msg":
+                                raise InputError(f"{fpath}: topic {ch.topic} has no ros2msg "
+                                                 "schema; it is not a ROS 2 bag")
+                            w.add_topic(ch.topic, sch.name,
+                                        ch.metadata.get("offered_qos_profiles") or None,
+                                        definition=bytes(sch.data).decode("utf-8"))
+                        w.write(ch.topic, bytes(rec.data), rec.log_time, rec.publish_time,
+                                rec.sequence)
+                        n += 1
+    return n
