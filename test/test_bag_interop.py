@@ -386,3 +386,53 @@ def test_rosbag2_written_files_read_the_same():
     # mcap_ros2 read all 20
     res = check_bag(DATA / "talker")
     assert res.ours.decoded == res.mcap_ros2.decoded == 20 and res.rosbags.decoded == 0
+    # and our reader gives the folder's QoS from its metadata.yaml, as ros2 bag play uses
+    # them and rosbags reports them
+    qos = BagReader(DATA / "talker").topics()["/topic"].qos
+    assert yaml.safe_load(qos)[0]["deadline"] == {"sec": 0, "nsec": 0}
+    assert [q["deadline"] for q in res.rosbags.qos["/topic"]] == [{"sec": 0, "nsec": 0}]
+
+
+def test_checks_catch_a_definition_that_does_not_match(tmp_path):
+    """The checks have teeth: a schema that does not describe the data is caught, and a
+    definition that is not the installed one gets no (wrong) installed type hash."""
+    from std_msgs.msg import Float32
+
+    from ooi_seg_ros.bag import message_definition, type_hash
+
+    wrong = message_definition("std_msgs/msg/Float32").replace("float32", "float64")
+    p = tmp_path / "wrong.mcap"
+    with BagWriter(p) as w:
+        w.add_topic("/f", "std_msgs/msg/Float32", definition=wrong)
+        w.write("/f", Float32(data=1.5), 10)
+    with open(p, "rb") as f:
+        (ch,) = make_reader(f).get_summary().channels.values()
+    assert "topic_type_hash" not in ch.metadata
+    res = check_bag(p)
+    assert not res.ok and (res.rosbags.error or res.rosbags.mismatches)
+    assert res.mcap_ros2.error or res.mcap_ros2.mismatches
+    q = tmp_path / "wrong_hash.mcap"
+    with BagWriter(q) as w:
+        w.add_topic("/f", "std_msgs/msg/Float32", definition=wrong,
+                    type_hash=type_hash("std_msgs/msg/Float32"))
+        w.write("/f", Float32(data=1.5), 10)
+    assert any("topic_type_hash" in x for x in check_bag(q).problems)
+
+
+def test_other_version_of_a_type_decodes_by_its_own_definition(tmp_path):
+    """A bag from another version of a type (its hash is not the installed one) is decoded by
+    the definition it carries, as the independent readers do, not by the installed class."""
+    from std_msgs.msg import Float32
+
+    other = "float32 value\n"  # same bytes on the wire, another field name
+    p = tmp_path / "other.mcap"
+    with BagWriter(p) as w:
+        w.add_topic("/f", "std_msgs/msg/Float32", definition=other,
+                    type_hash="RIHS01_" + "ab" * 32)
+        w.write("/f", Float32(data=1.5), 10)
+    r = BagReader(p)
+    (m,) = list(r.records())
+    assert r.decode(m.type, m.data, m.topic).value == 1.5
+    assert r.decode(m.type, m.data).data == 1.5  # without the topic: the installed class
+    (rb,) = _rosbags_read(p)[0]["/f"]
+    assert rb[1].value == 1.5

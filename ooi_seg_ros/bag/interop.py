@@ -313,9 +313,13 @@ def file_problems(path: Union[str, Path], store: Any = None) -> list[str]:
     Checks the ``ros2`` profile, ``ros2msg`` schemas named ``pkg/msg/Name``, ``cdr`` channels
     with ``offered_qos_profiles`` in the layout the file's own metadata version declares,
     the ``rosbag2`` metadata record against the summary, and (with a rosbags typestore built
-    from the file) each ``topic_type_hash`` against the hash of the embedded definition.
+    from the file) each ``topic_type_hash`` against the hash of the embedded definition and,
+    for a bag that says it is from Jazzy, against the hash of rosbags' own Jazzy types.
     """
     from mcap.reader import make_reader
+    from rosbags.typesys import Stores, get_typestore
+
+    jazzy = get_typestore(Stores.ROS2_JAZZY)
 
     problems: list[str] = []
     with open(path, "rb") as f:
@@ -362,6 +366,11 @@ def file_problems(path: Union[str, Path], store: Any = None) -> list[str]:
                 if have != thash:
                     problems.append(f"{c.topic}: topic_type_hash {thash} != {have} computed "
                                     "from the embedded definition")
+        if (thash and sch is not None and sch.name in jazzy.fielddefs
+                and (meta or {}).get("ros_distro") == "jazzy"):
+            if jazzy.hash_rihs01(sch.name) != thash:
+                problems.append(f"{c.topic}: topic_type_hash {thash} is not Jazzy's "
+                                f"{jazzy.hash_rihs01(sch.name)} for {sch.name}")
     if meta is not None:
         problems.extend(_metadata_problems(meta, summary, version))
     return problems
@@ -436,7 +445,9 @@ def check_bag(path: Union[str, Path]) -> BagCheck:
     mr_rep, mr = read_mcap_ros2(path)
     _compare(rb_rep, rb, ours, with_publish=False)
     _compare(mr_rep, mr, ours, with_publish=True)
-    for rep in (rb_rep, mr_rep):  # the QoS each reader parsed is the one we wrote
+    # the QoS each reader parsed is the one we report (mcap_ros2 reads a folder's files, not
+    # its metadata.yaml, which is where a folder's QoS come from)
+    for rep in (rb_rep, mr_rep) if path.is_file() else (rb_rep,):
         for topic, profiles in ours_rep.qos.items():
             theirs = [canonical_qos_dict(p) for p in rep.qos.get(topic, [])]
             if rep.accepted and theirs != [canonical_qos_dict(p) for p in profiles]:

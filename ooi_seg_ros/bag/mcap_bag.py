@@ -212,6 +212,7 @@ class BagWriter:
         self._writer = Writer(stream, chunk_size=chunk_size, compression=comp)
         self._writer.start(profile="ros2", library="ooi_seg_ros")
         self._schemas: dict[str, int] = {}
+        self._hashes: dict[str, str] = {}  # type -> RIHS01 hash of its schema ("" unknown)
         self._channels: dict[str, int] = {}
         self.topics: dict[str, TopicInfo] = {}
         self._t0: Optional[int] = None
@@ -228,11 +229,14 @@ class BagWriter:
             self.close()
 
     def add_topic(self, topic: str, type_name: str, qos: Optional[str] = None,
-                  definition: Optional[str] = None) -> None:
+                  definition: Optional[str] = None, type_hash: Optional[str] = None) -> None:
         """Declares a topic (idempotent for the same type).
 
         ``definition`` overrides the schema text (e.g. copied from another bag); by default it
         is built from the installed ``.msg`` files, and a type that is not installed needs it.
+        ``type_hash`` (RIHS01) goes with it when known; otherwise the installed type's hash is
+        written only when the definition is the installed one (readers check the hash against
+        the definition, so a wrong one is worse than none).
         """
         if topic in self.topics:
             if self.topics[topic].type != type_name:
@@ -247,9 +251,11 @@ class BagWriter:
                                  "share/); install its interface package or pass definition=")
             self._schemas[type_name] = self._writer.register_schema(
                 name=type_name, encoding="ros2msg", data=text.encode("utf-8"))
+            installed = definition is None or definition == msgdefs.message_definition(type_name)
+            self._hashes[type_name] = (msgdefs.type_hash(type_name) or "") if installed else ""
         qos_s = resolve_qos(qos)  # in rosbag2's layout for the version this file declares
         meta = {"offered_qos_profiles": qos_s}
-        thash = msgdefs.type_hash(type_name) or ""
+        thash = self._hashes[type_name] if type_hash is None else type_hash
         if thash:
             meta["topic_type_hash"] = thash
         self._channels[topic] = self._writer.register_channel(
@@ -412,6 +418,31 @@ def message_class(type_name: str):
     return getattr(mod, name, None)
 
 
+def _folder_topic_qos(path: Path) -> dict[str, str]:
+    """{topic: offered_qos_profiles text} from a rosbag2 folder's ``metadata.yaml``.
+
+    ``ros2 bag play`` of a folder takes the topics' QoS from there, not from the files'
+    channels (the two can differ, e.g. in bags written by other tools). Version 9 stores a
+    YAML list, older versions a string; both come back as text. {} when there is none.
+    """
+    meta = path / "metadata.yaml"
+    if not path.is_dir() or not meta.is_file():
+        return {}
+    try:
+        info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+        out = {}
+        for t in info.get("topics_with_message_count") or []:
+            tm = t["topic_metadata"]
+            q = tm.get("offered_qos_profiles")
+            if isinstance(q, list):
+                q = yaml.safe_dump(q, sort_keys=False, default_flow_style=False).rstrip("\n")
+            if isinstance(q, str) and q:
+                out[tm["name"]] = q
+        return out
+    except (yaml.YAMLError, KeyError, TypeError, AttributeError):
+        return {}  # _bag_files has said what is wrong with the file
+
+
 def _bag_files(path: Path) -> list[Path]:
     """The MCAP files of a bag path (file or rosbag2 folder), InputError when there are none."""
     if not path.exists():
@@ -535,6 +566,8 @@ class BagReader:
                 log.warning(msg)
             self._idx.append(idx)
         self._decoders: dict[int, Any] = {}
+        self._folder_qos = _folder_topic_qos(self.path)
+        self._topic_cache: Optional[dict[str, TopicInfo]] = None
 
     @property
     def truncated(self) -> bool:
@@ -556,6 +589,9 @@ class BagReader:
                         sch.encoding if sch is not None else "",
                         bytes(sch.data) if sch is not None else b"")
                 info.count += idx.counts.get(cid, 0)
+        for topic, qos in self._folder_qos.items():
+            if topic in out:
+                out[topic].qos = qos
         return out
 
     def time_span(self) -> tuple[int, int]:
@@ -632,10 +668,20 @@ class BagReader:
     def decode(self, type_name: str, data: bytes, topic: Optional[str] = None) -> Any:
         """A message object from CDR bytes.
 
-        The installed rclpy class when there is one; otherwise a dynamic object decoded from
-        the definition embedded in the bag (needs ``topic`` to find it). InputError if neither.
+        The installed rclpy class when there is one and the bag's type hash for ``topic`` (if
+        it has one) is the installed type's; otherwise a dynamic object decoded from the
+        definition embedded in the bag (needs ``topic``), so a bag recorded with another
+        version of a type decodes by its own definition instead of into garbage. InputError
+        if neither works.
         """
         cls = message_class(type_name)
+        if cls is not None and topic is not None:
+            if self._topic_cache is None:
+                self._topic_cache = self.topics()
+            info = self._topic_cache.get(topic)
+            if (info is not None and info.type_hash and info.schema
+                    and info.type_hash != (msgdefs.type_hash(type_name) or info.type_hash)):
+                cls = None  # another version of the type: use the bag's own definition
         if cls is not None:
             from rclpy.serialization import deserialize_message
             try:
@@ -713,7 +759,8 @@ def recover_bag(src: Union[str, Path], dst: Union[str, Path]) -> int:
                                                  "schema; it is not a ROS 2 bag")
                             w.add_topic(ch.topic, sch.name,
                                         ch.metadata.get("offered_qos_profiles") or None,
-                                        definition=bytes(sch.data).decode("utf-8"))
+                                        definition=bytes(sch.data).decode("utf-8"),
+                                        type_hash=ch.metadata.get("topic_type_hash", ""))
                         w.write(ch.topic, bytes(rec.data), rec.log_time, rec.publish_time,
                                 rec.sequence)
                         n += 1
