@@ -436,3 +436,54 @@ def test_other_version_of_a_type_decodes_by_its_own_definition(tmp_path):
     assert r.decode(m.type, m.data).data == 1.5  # without the topic: the installed class
     (rb,) = _rosbags_read(p)[0]["/f"]
     assert rb[1].value == 1.5
+
+
+def test_training_node_recording_in_both_readers(tmp_path):
+    """The training node's own recording (inputs and outputs, written while it runs)."""
+    import uuid
+
+    from rclpy.parameter import Parameter
+    from std_srvs.srv import Trigger
+
+    from ooi_seg_ros.nodes.common import mask_frame_id
+    from ooi_seg_ros.nodes.training_node import TrainingNode
+
+    r = BagReader(DEMO)
+    names = {"/camera/camera_info": 0, "/camera/pose": 1, "/camera/image_raw": 2,
+             "/ground_truth/mask": 3}
+    demo = [[], [], [], []]
+    for topic, ty, _t, data in r.messages(topics=list(names)):
+        demo[names[topic]].append(r.decode(ty, data))
+    bag = tmp_path / "node.mcap"
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        ns = "/tb_" + uuid.uuid4().hex[:8]
+        node = TrainingNode(context=ctx, namespace=ns, parameter_overrides=[
+            Parameter("record_path", value=str(bag)), Parameter("stable_updates", value=1),
+            Parameter("train.iterations", value=3), Parameter("train.eval_every", value=0),
+            Parameter("train.snapshot_every", value=0),
+            Parameter("train.max_gaussians", value=300)])
+        try:
+            for info, pose, img, gt in list(zip(*demo))[:8]:
+                node.on_kf_info(info)
+                node.on_kf_pose(pose)
+                node.on_kf_image(img)
+                node.on_mask(msgconv.mask_to_image(msgconv.image_to_mask(gt), gt.header.stamp,
+                                                   mask_frame_id(False)))
+            xyz = np.random.default_rng(0).normal(scale=0.2, size=(200, 3))
+            cloud = msgconv.xyzrgb_to_pointcloud2(xyz, None, demo[2][7].header.stamp)
+            node.on_ooi_points(cloud)
+            node.on_ooi_points(cloud)
+            assert node.on_train_srv(Trigger.Request(), Trigger.Response()).success
+            assert node.wait_idle(120) and node.runs == 1
+        finally:
+            node.close()
+            node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+    res = _assert_agree(bag)
+    assert res.ours.counts[f"{ns}/keyframe/image"] == 8
+    assert res.ours.counts[f"{ns}/splats"] >= 1
+    (_t, splats), *_ = _rosbags_read(bag)[0][f"{ns}/splats"]
+    assert [f.name for f in splats.fields][:4] == ["x", "y", "z", "f_dc_0"]

@@ -22,7 +22,9 @@ from __future__ import annotations
 import array
 import dataclasses
 import math
+import os
 import sys
+import time
 from pathlib import Path
 from typing import Any, Optional, Union
 
@@ -53,6 +55,8 @@ class ReaderReport:
     decoded: int = 0  # messages decoded
     mismatches: list[str] = dataclasses.field(default_factory=list)  # vs our reader
     qos: dict[str, list[dict]] = dataclasses.field(default_factory=dict)  # parsed profiles
+    wall_s: float = 0.0  # open + decode every message (into the reader's own objects + plain)
+    cpu_s: float = 0.0
 
 
 @dataclasses.dataclass
@@ -79,7 +83,8 @@ class BagCheck:
         for r in (self.ours, self.rosbags, self.mcap_ros2):
             state = "accepted" if r.accepted else "REJECTED"
             lines.append(f"  {r.reader:10s} {state}, {r.decoded} messages decoded, "
-                         f"{len(r.mismatches)} mismatches"
+                         f"{len(r.mismatches)} mismatches, {r.wall_s:.2f} s "
+                         f"({r.cpu_s:.2f} CPU-s)"
                          + (f"; error {r.error}" if r.error else ""))
             lines.extend(f"      {m}" for m in r.mismatches[:5])
         lines.extend(f"  problem: {p}" for p in self.problems)
@@ -437,12 +442,20 @@ def _metadata_problems(meta: dict, summary, version: Optional[int]) -> list[str]
     return out
 
 
+def _timed(fn, path):
+    """fn(path) with its wall and CPU seconds put into the report (first item)."""
+    w0, c0 = time.perf_counter(), time.process_time()
+    out = fn(path)
+    out[0].wall_s, out[0].cpu_s = time.perf_counter() - w0, time.process_time() - c0
+    return out
+
+
 def check_bag(path: Union[str, Path]) -> BagCheck:
     """Reads ``path`` with our reader and both independent readers and compares them."""
     path = Path(path)
-    ours_rep, ours = read_ours(path)
-    rb_rep, rb, store = read_rosbags(path)
-    mr_rep, mr = read_mcap_ros2(path)
+    ours_rep, ours = _timed(read_ours, path)
+    rb_rep, rb, store = _timed(read_rosbags, path)
+    mr_rep, mr = _timed(read_mcap_ros2, path)
     _compare(rb_rep, rb, ours, with_publish=False)
     _compare(mr_rep, mr, ours, with_publish=True)
     # the QoS each reader parsed is the one we report (mcap_ros2 reads a folder's files, not
@@ -474,6 +487,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         print("usage: python -m ooi_seg_ros.bag.interop BAG [BAG...]", file=sys.stderr)
         return 2
     ok = True
+    print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     for p in paths:
         res = check_bag(p)
         print(res.summary())
