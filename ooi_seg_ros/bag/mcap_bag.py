@@ -4,6 +4,10 @@ A file written here has the ``ros2`` profile, one ``ros2msg`` schema per type wi
 concatenated definition, ``cdr`` channels carrying ``offered_qos_profiles`` and
 ``topic_type_hash`` metadata, zstd-compressed chunks, and the ``rosbag2`` metadata record
 (``serialized_metadata`` YAML, ``ros_distro``) at the end, so ``ros2 bag info/play`` accept it.
+The file says rosbag2 metadata version 9 (Jazzy) and holds QoS in that version's layout: rmw
+enum names in the channels, a YAML list in the record (rosbag2 parses both by the version).
+``interop`` checks files against two independent readers; ``recover_bag`` finishes a file
+whose writer was killed.
 
 Reading accepts an ``.mcap`` file or a rosbag2 bag folder (``metadata.yaml`` + files). A file
 without a summary (recorder killed, file cut short) is read record by record up to the damage,
