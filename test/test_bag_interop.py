@@ -487,3 +487,56 @@ def test_training_node_recording_in_both_readers(tmp_path):
     assert res.ours.counts[f"{ns}/splats"] >= 1
     (_t, splats), *_ = _rosbags_read(bag)[0][f"{ns}/splats"]
     assert [f.name for f in splats.fields][:4] == ["x", "y", "z", "f_dc_0"]
+
+
+@pytest.mark.parametrize("version", [8, 9])
+def test_bag_written_by_rosbags_reads_in_ours(tmp_path, version):
+    """The reverse direction: a rosbag2 folder written by rosbags' own writer (MCAP storage,
+    metadata version 8 or 9 with its QoS layout) reads in ours with the same values, and
+    its QoS reach `play` as written."""
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+    from rosbags.interfaces import Qos, QosHistory, QosLiveliness, QosTime
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from ooi_seg_ros.nodes.bagplay import qos_from_offered
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    inf = QosTime(9223372036, 854775807)
+
+    def qos(rel, dur):
+        return [Qos(QosHistory.KEEP_LAST, 7, rel, dur, inf, inf, QosLiveliness.AUTOMATIC, inf,
+                    False)]
+
+    Img, Hdr, Time = (ts.types[n] for n in ("sensor_msgs/msg/Image", "std_msgs/msg/Header",
+                                            "builtin_interfaces/msg/Time"))
+    Str = ts.types["std_msgs/msg/String"]
+    folder = tmp_path / f"rb{version}"
+    with Writer(folder, version=version, storage_plugin=StoragePlugin.MCAP) as w:
+        ci = w.add_connection("/img", "sensor_msgs/msg/Image", typestore=ts,
+                              offered_qos_profiles=qos(QosReliability.BEST_EFFORT,
+                                                       QosDurability.VOLATILE))
+        cs = w.add_connection("/str", "std_msgs/msg/String", typestore=ts,
+                              offered_qos_profiles=qos(QosReliability.RELIABLE,
+                                                       QosDurability.TRANSIENT_LOCAL))
+        for i in range(4):
+            px = np.full(2 * 3 * 3, i, np.uint8)
+            img = Img(Hdr(Time(1, i), "cam"), 2, 3, "rgb8", 0, 9, px)
+            w.write(ci, 100 + i, ts.serialize_cdr(img, "sensor_msgs/msg/Image"))
+            w.write(cs, 100 + i, ts.serialize_cdr(Str(f"s{i}"), "std_msgs/msg/String"))
+    meta = yaml.safe_load((folder / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["version"] == version
+    for path in (folder, next(folder.glob("*.mcap"))):
+        r = BagReader(path)
+        topics = r.topics()
+        assert {t: i.count for t, i in topics.items()} == {"/img": 4, "/str": 4}
+        got = [(m.topic, m.log_time_ns, r.decode(m.type, m.data, m.topic)) for m in r.records()]
+        imgs = [m for t, _lt, m in got if t == "/img"]
+        assert [msgconv.image_to_rgb(m)[0, 0, 0] for m in imgs] == [0, 1, 2, 3]
+        assert [m.header.stamp.nanosec for m in imgs] == [0, 1, 2, 3]
+        assert [m.data for t, _lt, m in got if t == "/str"] == ["s0", "s1", "s2", "s3"]
+        q_img, q_str = qos_from_offered(topics["/img"].qos), qos_from_offered(topics["/str"].qos)
+        assert q_img.reliability == ReliabilityPolicy.BEST_EFFORT and q_img.depth == 7
+        assert q_str.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    res = check_bag(folder)
+    assert not any(r.mismatches or r.error for r in (res.ours, res.rosbags, res.mcap_ros2))
