@@ -266,7 +266,7 @@ def test_sigkilled_writer_rejected_by_both_then_recovered(tmp_path):
                           capture_output=True, timeout=120)
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()
     r = BagReader(p)
-    assert r.truncated and "ooi_seg_ros.bag.recover" in r.warnings[0]
+    assert r.truncated and "ooi-seg recover" in r.warnings[0]
     ours = list(r.records())
     assert 40 <= len(ours) < 66  # all but the chunk in progress
     with pytest.raises(Exception, match="magic"):
@@ -323,9 +323,18 @@ def test_sigkilled_record_process(tmp_path):
     n = sum(1 for _ in r.records())
     assert n >= 100
     fixed = tmp_path / "fixed.mcap"
-    assert recover_bag(out, fixed) == n
+    # as a user would: the CLI subcommand the reader's warning names
+    proc = subprocess.run([sys.executable, "-m", "ooi_seg_ros.cli", "recover", str(out),
+                           "--out", str(fixed)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert f"wrote {fixed}: {n} messages" in proc.stdout
     res = _assert_agree(fixed)
     assert res.mcap_ros2.counts[topic] == n
+    missing = subprocess.run([sys.executable, "-m", "ooi_seg_ros.cli", "recover",
+                              str(tmp_path / "nope.mcap"), "--out", str(fixed)], cwd=ROOT,
+                             capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 1 and "does not exist" in missing.stderr
 
 
 # ----------------------------------------------------------------------------- QoS layout

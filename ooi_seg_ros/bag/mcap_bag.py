@@ -564,8 +564,8 @@ class BagReader:
                 msg = (f"{f.name} has no valid summary/footer (truncated or damaged: "
                        f"{idx.error}); read {sum(idx.counts.values())} messages up to the "
                        "damage. Other readers (rosbags, Foxglove, ros2 bag) reject such a "
-                       "file: repair it with `python -m ooi_seg_ros.bag.recover` (or `mcap "
-                       "recover`)")
+                       "file: repair it with `ooi-seg recover FILE --out FIXED.mcap` (the same "
+                       "as `python -m ooi_seg_ros.bag.recover`, or `mcap recover`)")
                 self.warnings.append(msg)
                 log.warning(msg)
             self._idx.append(idx)

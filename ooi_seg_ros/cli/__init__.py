@@ -13,7 +13,7 @@ import sys
 from ..core.types import OoiSegError
 
 SUBCOMMANDS = ("info", "simulate", "sfm", "segment", "eval", "train", "export", "play",
-               "record", "run")
+               "record", "recover", "run")
 
 
 def build_parser() -> argparse.ArgumentParser:
