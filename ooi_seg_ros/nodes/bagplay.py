@@ -199,14 +199,19 @@ class BagRecorder(Node):
                 self.writer.add_topic(t, type_name, qos_to_offered(profiles))
             self.counts[t] = 0
             self.subs[t] = self.create_subscription(
-                cls, t, lambda data, topic=t: self._on_msg(topic, data), qos, raw=True)
+                cls, t, lambda data, info, topic=t: self._on_msg(topic, data, info), qos,
+                raw=True)
             self.get_logger().info(f"recording {t} ({type_name})")
 
-    def _on_msg(self, topic: str, data: bytes) -> None:
+    def _on_msg(self, topic: str, data: bytes, info: Optional[dict] = None) -> None:
+        """Log time = this node's clock at reception (sim time when ``use_sim_time``), publish
+        time = the sender's source timestamp from the middleware, as rosbag2 records them."""
         with self._lock:
             if self._closed:
                 return
-            self.writer.write(topic, data, self.get_clock().now().nanoseconds)
+            now = self.get_clock().now().nanoseconds
+            sent = int((info or {}).get("source_timestamp") or 0)
+            self.writer.write(topic, data, now, sent if sent > 0 else now)
             self.counts[topic] += 1
 
     def close(self) -> None:
