@@ -103,10 +103,10 @@ def attribute(scene: str, args) -> dict:
     views = cap.views
     idx = {v.key: i for i, v in enumerate(views)}
     floors: dict[int, np.ndarray] = {}
-    orig = photo.PlaneConsistency.floor_map
+    orig = photo.PlaneConsistency.floor_maps
 
     def record(self, i, box, shape=None):  # the floor map of each refined crop, full frame
-        fl = orig(self, i, box, shape)
+        fl, soft = orig(self, i, box, shape)
         y0, y1, x0, x1 = box
         full = floors.setdefault(i, np.zeros((h, w), bool))
         if fl.shape != (y1 - y0, x1 - x0):
@@ -116,17 +116,17 @@ def attribute(scene: str, args) -> dict:
         else:
             fl2 = fl
         full[y0:y1, x0:x1] |= fl2
-        return fl
+        return fl, soft
 
     keys = [v.key for v in views[::args.view_step]] if args.view_step > 1 else None
-    photo.PlaneConsistency.floor_map = record
+    photo.PlaneConsistency.floor_maps = record
     try:
         cfg = make_config("ours", dict(json.loads(args.set or "{}"), seed=0))
         t0 = time.perf_counter()
         r = segment(cap, cloud, cfg, mask_keys=keys)
         dt = time.perf_counter() - t0
     finally:
-        photo.PlaneConsistency.floor_map = orig
+        photo.PlaneConsistency.floor_maps = orig
     mviews = [v for v in views if v.key in r.masks]
     xyz = r.ooi_cloud.xyz
     gts = {v.key: v.gt_mask for v in views}

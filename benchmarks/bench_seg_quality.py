@@ -53,6 +53,12 @@ VARIANTS = {
     "ours-s4": ("ours", {"refine": {"edge_window": 0, "plane_check": {"behind": False}}}),
     "ours-no-behind": ("ours", {"refine": {"plane_check": {"behind": False}}}),
     "ours-no-matte": ("ours", {"refine": {"edge_window": 0}}),
+    # session 6: the shifted-patch floor test and the object-keep map (the default since
+    # session 6), the session-5 default without both, and each alone
+    "ours-s5": ("ours", {"refine": {"plane_check": {"shifted": False, "object_keep": False}}}),
+    "ours-no-shifted": ("ours", {"refine": {"plane_check": {"shifted": False}}}),
+    "ours-no-keep": ("ours", {"refine": {"plane_check": {"object_keep": False}}}),
+    "ours+band": ("ours", {"refine": {"band_fraction": 0.3}}),
 }
 
 

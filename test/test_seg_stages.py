@@ -391,3 +391,44 @@ def test_behind_check_calls_background_behind_the_object_not_the_object():
     print("object called background", obj_hit / obj_n, "background near it", bg_hit / bg_n)
     assert obj_hit < 0.02 * obj_n
     assert bg_hit > 0.08 * bg_n
+
+
+def test_shifted_plane_check_and_object_keep_on_a_known_scene():
+    """The shifted-patch test (a pixel inside a matching patch whose own colour matches the
+    warp) calls more of the floor right next to the object floor than the centred test, and
+    still (almost) none of the object; the object-keep map is (almost) all object and never
+    overlaps the floor map."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    from ooi_seg_ros.sim import simulate_capture
+    sim = simulate_capture("tabletop", n_views=24, width=128, height=96, seed=0)
+    views = sim.capture.views
+    plane = np.array([0.0, 0.0, 1.0, -sim.scene.support_z])
+    target = np.mean(sim.capture.gt_ooi_points, axis=0)
+    maps = {}
+    for name, shifted in (("centred", False), ("shifted", True)):
+        pc = PlaneConsistency(views, plane, target, PlaneCheckConfig(
+            enabled=True, max_deg=40.0, shifted=shifted, object_keep=shifted))
+        pc.ooi_xyz = sim.capture.gt_ooi_points
+        maps[name] = [pc.floor_maps(i, (0, 96, 0, 128)) for i in range(0, 24, 4)]
+    hits = {m: [0, 0] for m in maps}
+    n_obj = n_near = keep_n = keep_obj = 0
+    for k, i in enumerate(range(0, 24, 4)):
+        v = views[i]
+        dirs = undistorted_dirs(v.camera).reshape(96, 128, 3) @ v.pose.R.T
+        p = v.pose.t + dirs * sim.depths[i][..., None]
+        on_plane = np.abs(p[..., 2] - sim.scene.support_z) < 1e-3
+        near = ndimage.binary_dilation(v.gt_mask, iterations=3) & ~v.gt_mask & on_plane
+        n_obj += v.gt_mask.sum()
+        n_near += near.sum()
+        for m in maps:
+            hits[m][0] += (maps[m][k][0] & v.gt_mask).sum()
+            hits[m][1] += (maps[m][k][0] & near).sum()
+        assert not maps["centred"][k][1].any()  # no object map unless asked for
+        fl, keep = maps["shifted"][k]
+        assert not (fl & keep).any()
+        keep_n += keep.sum()
+        keep_obj += (keep & v.gt_mask).sum()
+    print({m: (h[0] / n_obj, h[1] / n_near) for m, h in hits.items()}, keep_obj, keep_n)
+    assert hits["shifted"][1] > 1.2 * hits["centred"][1]  # more of the floor within 3 px
+    assert hits["shifted"][0] < 0.02 * n_obj
+    assert keep_n > 0.05 * n_obj and keep_obj > 0.95 * keep_n

@@ -21,6 +21,14 @@ match; on the sim tabletop at 256x192 it called 0.002% of object pixels and 11% 
 background just beyond the plant background (the rest: plain wall, or the hypothesis depth
 off by more than the patch tolerates).
 
+``shifted`` reaches the floor right next to the object, where the patch centred on a floor
+pixel straddles the outline and never matches: a pixel inside a matching patch shifted by
+``shifted_reach`` px is floor when its own colour matches the warp within the view pair's
+noise (measured at the matching patches' centres) and better than at the object's depth.
+``object_keep`` is the converse, a map of silhouette pixels whose colour the object's depth
+(the nearest OOI point's disc over them) explains in the neighbours and the support plane
+does not; the refinement keeps them object whatever GrabCut's colour models say.
+
 Measured against exact masks (sim aircraft / plant, every 6th view, NCC > 0.8, two views):
 0.3-0.5% of object pixels but 38-50% of the background within 15 px of the object are called
 floor -- the apron between wing and fuselage, the table around a pot, the lawn in a wheel.
@@ -67,6 +75,18 @@ class PlaneCheckConfig:
     # depth well beyond the object is displaced by a large parallax, so 1 can be safe)
     behind_reach: float = 0.1  # behind: a pixel takes a background point's depth only within
     # this fraction of the crop's longer side of it
+    shifted: bool = False  # support plane: a pixel is also floor when a patch that merely
+    # *contains* it (not centred on it) matches and its own colour matches the warp: next to
+    # the object's outline the centred patch straddles object and floor and never matches
+    shifted_reach: int = 1  # shifted: how far (px) the matching patch's centre may lie from
+    # the pixel (at most window // 2; 1 lost fewer object edges than 2)
+    pixel_quantile: float = 0.75  # shifted / object_keep: a pixel's own colour "matches" a warp
+    # within this quantile of the per-pixel differences at the centres of the matching patches
+    # (the view pair's noise and interpolation error, measured, not a constant)
+    object_keep: bool = False  # silhouette pixels that the object explains and the support
+    # plane does not (in >= rank neighbours, the colour at the depth of the OOI points whose
+    # discs cover the pixel matches, the plane's does not) stay object after GrabCut: an object
+    # edge as dark as the shadow beside it, which the colour models give to the background
 
 
 def _grey(x: np.ndarray) -> np.ndarray:
@@ -98,6 +118,7 @@ class PlaneConsistency:
         self._dirs: dict = {}
         self.behind_xyz: Optional[np.ndarray] = None  # background points for ``cfg.behind``
         self.ooi_xyz: Optional[np.ndarray] = None  # the object's points (its depth per view)
+        self._radii: Optional[np.ndarray] = None  # their 4-NN spacing (``radii``)
         self._img: OrderedDict = OrderedDict()
         self.seconds = 0.0  # time spent in floor_map (reported by the refinement)
 
@@ -203,12 +224,69 @@ class PlaneConsistency:
         X, hit = self.plane_points(i, box, k)
         return self.sample(j, X, hit, (box[1] - box[0], box[3] - box[2]))
 
+    def _pixel_tol(self, match: np.ndarray, pix: np.ndarray) -> Optional[float]:
+        """Per-pixel colour tolerance of one view pair: the ``pixel_quantile`` of the per-pixel
+        differences ``pix`` at the centres of the matching (textured) patches ``match``; None
+        when fewer than 4 patches match (no measure of the pair's noise)."""
+        if match.sum() < 4:
+            return None
+        return float(np.quantile(pix[match], self.cfg.pixel_quantile))
+
+    def radii(self) -> np.ndarray:
+        """4-NN spacing [N] of the OOI points (capped at 3x the median; cached)."""
+        if self._radii is None or len(self._radii) != len(self.ooi_xyz):
+            from .masks import point_radii
+            self._radii = point_radii(self.ooi_xyz, 4, 1.0)
+        return self._radii
+
+    def disc_depth(self, i: int, box: tuple[int, int, int, int], shape: tuple[int, int]
+                   ) -> np.ndarray:
+        """Per pixel [h, w] of the crop (on a ``shape`` grid): the least depth of the OOI
+        points whose disc of one 4-NN spacing (+1 px) covers it; inf where none does."""
+        v = self.views[i]
+        c = v.camera
+        y0, y1, x0, x1 = box
+        h, w = shape
+        sx, sy = w / (x1 - x0), h / (y1 - y0)
+        uv, z = project_distorted(self.ooi_xyz, c, v.pose)
+        r = self.radii()
+        ok = (z > 1e-9) & np.isfinite(uv).all(1)
+        gu = (uv[ok, 0] - x0 + 0.5) * sx - 0.5
+        gv = (uv[ok, 1] - y0 + 0.5) * sy - 0.5
+        rpx = r[ok] * c.fx / z[ok] * sx + 1.0  # the splat's closing reaches ~1 px further
+        zmin = np.full((h, w), np.inf)
+        inside = (gu > -rpx) & (gu < w - 1 + rpx) & (gv > -rpx) & (gv < h - 1 + rpx)
+        for u0, v0, rp, zl in zip(gu[inside], gv[inside], rpx[inside], z[ok][inside]):
+            a0, a1 = max(0, int(np.floor(u0 - rp))), min(w, int(np.ceil(u0 + rp)) + 1)
+            b0, b1 = max(0, int(np.floor(v0 - rp))), min(h, int(np.ceil(v0 + rp)) + 1)
+            if a0 >= a1 or b0 >= b1:
+                continue
+            yy, xx = np.ogrid[b0:b1, a0:a1]
+            disc = (xx - u0) ** 2 + (yy - v0) ** 2 <= rp * rp
+            sub = zmin[b0:b1, a0:a1]
+            np.minimum(sub, np.where(disc, zl, np.inf), out=sub)
+        return zmin
+
     def floor_map(self, i: int, box: tuple[int, int, int, int],
                   shape: Optional[tuple[int, int]] = None) -> np.ndarray:
         """Bool [h, w] of the crop ``box`` (y0, y1, x0, x1) of view ``i``: pixels on the floor.
 
         ``shape`` (h, w) computes it on the crop resized to that size (what GrabCut works on;
         the cost then does not grow with the image resolution); default: the crop's own size.
+        """
+        return self.floor_maps(i, box, shape)[0]
+
+    def floor_maps(self, i: int, box: tuple[int, int, int, int],
+                   shape: Optional[tuple[int, int]] = None) -> tuple[np.ndarray, np.ndarray]:
+        """(floor, object) bool [h, w] maps of the crop, as ``floor_map``: ``floor`` = the
+        floor map; ``object`` = with ``object_keep``, the pixels whose colour the object's
+        depth explains and the support plane does not (else empty; never overlapping floor).
+
+        ``shifted``: next to the object's outline the patch centred on a floor pixel straddles
+        the object and never matches, but a patch shifted by up to ``shifted_reach`` px away
+        from the object does. Such a pixel is floor when its own colour matches the warp
+        within the pair's noise and better than the warp at the object's depth (where an OOI
+        disc covers it): an object edge warped through the plane is displaced by parallax.
         """
         t0 = time.perf_counter()
         y0, y1, x0, x1 = box
@@ -229,8 +307,19 @@ class PlaneConsistency:
         va = np.maximum(box_mean(ga * ga) - ma * ma, 0.0)
         textured = va > cfg.min_std ** 2
 
-        def consistent(X: np.ndarray, hit: np.ndarray, rank: int) -> np.ndarray:
+        obj = None  # the rays at the depth of the OOI discs covering them
+        if (cfg.shifted or cfg.object_keep) and self.ooi_xyz is not None:
+            zo = self.disc_depth(i, box, ga.shape).reshape(-1)
+            has = np.isfinite(zo)
+            dirs = self._crop_dirs(i, box, None if shape is None else ga.shape)
+            v = self.views[i]
+            obj = (v.pose.t + (dirs * np.where(has, zo, 0.0)[:, None]) @ v.pose.R.T, has)
+        keep = np.zeros(ga.shape, np.int32)
+
+        def consistent(X: np.ndarray, hit: np.ndarray, rank: int, support: bool = False
+                       ) -> np.ndarray:
             votes = np.zeros(ga.shape, np.int32)
+            votes_s = np.zeros(ga.shape, np.int32)
             for j in self.nbrs[i]:
                 b, ok = self.sample(j, X, hit, ga.shape)
                 if not ok.any():
@@ -239,20 +328,39 @@ class PlaneConsistency:
                 mb = box_mean(gb)
                 vb = np.maximum(box_mean(gb * gb) - mb * mb, 0.0)
                 ncc = (box_mean(ga * gb) - ma * mb) / np.sqrt(np.maximum(va * vb, 1e-6))
-                diff = box_mean(_grey(np.abs(a - b)))
+                pix = _grey(np.abs(a - b))  # per-pixel colour difference to the warp
+                diff = box_mean(pix)
                 whole = box_mean(ok.astype(np.float32)) > 0.999  # patch all inside view j
-                votes += whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
-            return votes >= max(1, rank)
+                match = whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
+                votes += match
+                if not support or obj is None:
+                    continue
+                tol = self._pixel_tol(match & textured, pix)
+                if tol is None:
+                    continue
+                bo, oko = self.sample(j, obj[0], obj[1], ga.shape)
+                pix_o = _grey(np.abs(a - bo))  # the same at the object's depth
+                if cfg.shifted:
+                    reach = int(min(max(0, cfg.shifted_reach), win // 2))
+                    near = ndimage.maximum_filter(match & textured, size=2 * reach + 1,
+                                                  mode="constant")
+                    # no disc covers the pixel: the object hypothesis does not apply there
+                    votes_s += near & ok & (pix <= tol) & (~oko | (pix < pix_o))
+                if cfg.object_keep:
+                    np.add(keep, oko & ok & (pix_o <= tol) & (pix > tol), out=keep)
+            fl = (votes >= max(1, rank)) & textured
+            if support and cfg.shifted:
+                fl |= votes_s >= max(1, rank)
+            return fl
 
         fl = np.zeros(ga.shape, bool)
         for k in range(len(self.planes)):
             X, hit = self.plane_points(i, box, k, shape)
-            fl |= consistent(X, hit, cfg.rank)
+            fl |= consistent(X, hit, cfg.rank, support=(k == 0))
         if cfg.behind and self.behind_xyz is not None and self.ooi_xyz is not None:
             X, hit = self.behind_points(i, box, ga.shape)
             if hit.any():
                 fl |= consistent(X, hit, cfg.behind_rank)
-        fl &= textured
         if cfg.min_region > 1 and fl.any():
             lab, n = ndimage.label(fl)
             sizes = np.bincount(lab.ravel(), minlength=n + 1)
@@ -260,7 +368,7 @@ class PlaneConsistency:
             big[0] = False
             fl = big[lab]
         self.seconds += time.perf_counter() - t0
-        return fl
+        return fl, (keep >= max(1, cfg.rank)) & ~fl
 
 
 def background_planes(bg_xyz: np.ndarray, ooi_xyz: np.ndarray, cam_centers: np.ndarray,

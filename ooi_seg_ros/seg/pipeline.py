@@ -7,10 +7,12 @@ the OOI points (no Poisson balloon), and a per-view GrabCut refinement seeded by
 projections of the OOI points, in which every pixel that shows the support plane, a
 background wall (plane-induced photo-consistency with nearby views, ``photo.py``) or the
 background beyond the object (the same test at the depth of the nearest background SfM point
-behind it) is sure background; the refined outline then takes the ring pixels whose colour
-is nearer the object's than the background's (``refine.edge_matte``). Each stage is a
-function with a typed input and output and its own config dataclass, so stages can be
-swapped by configuration.
+behind it) is sure background -- next to the object also when only a patch shifted off the
+pixel matches and the pixel's own colour does -- while pixels whose colour the object's depth
+explains and the plane's does not stay object; the refined outline then takes the ring
+pixels whose colour is nearer the object's than the background's (``refine.edge_matte``).
+Each stage is a function with a typed input and output and its own config dataclass, so
+stages can be swapped by configuration.
 """
 
 from __future__ import annotations
@@ -75,7 +77,8 @@ def preset(method: str) -> dict:
                           "hull_carve": False},
                 "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
                            "plane_check": {"enabled": True, "over_seeds": True,
-                                           "extra_planes": 3, "behind": True}}}
+                                           "extra_planes": 3, "behind": True,
+                                           "shifted": True, "object_keep": True}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 

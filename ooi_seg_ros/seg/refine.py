@@ -153,8 +153,8 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
             fkey = (j, box)
             if fkey not in floor_cache:
                 # on the (possibly reduced) grid GrabCut works on: its cost is bounded too
-                floor_cache[fkey] = floor.floor_map(j, box, crop_s.shape)
-            fl = floor_cache[fkey]
+                floor_cache[fkey] = floor.floor_maps(j, box, crop_s.shape)
+            fl, fl_obj = floor_cache[fkey]
             fl_full = fl if scale >= 1.0 else cv2.resize(
                 fl.astype(np.uint8), (crop.shape[1], crop.shape[0]),
                 interpolation=cv2.INTER_NEAREST).astype(bool)
@@ -185,6 +185,14 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
                              interpolation=cv2.INTER_NEAREST).astype(bool)
         if cfg.opening > 0:
             res = ndimage.binary_opening(res, iterations=int(cfg.opening))
+        if floor is not None and fl_obj.any():
+            # silhouette pixels the object's depth explains and the plane does not (after
+            # the opening, which would take thin stems kept this way with it)
+            keep = fl_obj & crop_s
+            if keep.shape != res.shape:
+                keep = cv2.resize(keep.astype(np.uint8), (res.shape[1], res.shape[0]),
+                                  interpolation=cv2.INTER_NEAREST).astype(bool)
+            res = res | keep
         res = fill_small_holes(res, cfg.hole_max_fraction)
         a0, a1 = ref_area, res.sum()
         if abs(a1 - a0) > cfg.max_area_change * a0:
@@ -278,6 +286,7 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                                  cfg.plane_check)
         if cfg.plane_check.behind:
             floor.behind_xyz = background.xyz
+        if cfg.plane_check.behind or cfg.plane_check.shifted or cfg.plane_check.object_keep:
             floor.ooi_xyz = ooi.xyz
     cache: dict = {}
     if cfg.fg_seeds == "observations":
