@@ -27,9 +27,9 @@ overlay of the worst views per scene coloured by cause (``--figure``).
 
     OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python benchmarks/bench_seg_errors.py \
         --scenes aircraft tabletop bicycle toycar --figure /tmp/seg_errors.png
-    # the same on the session-4 default (before the behind test and the outline matting)
+    # the same on the session-5 default (before the shifted patch and the object keep)
     OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python benchmarks/bench_seg_errors.py \
-        --set '{"refine": {"edge_window": 0, "plane_check": {"behind": false}}}'
+        --set '{"refine": {"plane_check": {"shifted": false, "object_keep": false}}}'
 """
 
 from __future__ import annotations
@@ -217,8 +217,8 @@ def main() -> None:
     ap.add_argument("--figure", help="write the cause overlay of the worst views here")
     ap.add_argument("--json", help="write the counts here")
     ap.add_argument("--set", metavar="JSON",
-                    help='overrides of the default, e.g. the session-4 default: \'{"refine": '
-                         '{"edge_window": 0, "plane_check": {"behind": false}}}\'')
+                    help='overrides of the default, e.g. the session-5 default: \'{"refine": '
+                         '{"plane_check": {"shifted": false, "object_keep": false}}}\'')
     args = ap.parse_args()
     results = [attribute(s, args) for s in args.scenes]
     print(f"\nerror pixels by cause, `ours` {args.set or '(default)'}, {args.size}, "

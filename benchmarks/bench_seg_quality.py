@@ -50,7 +50,9 @@ VARIANTS = {
     # eps widening, clusters merged only within the main cluster's own reach (x1.0)
     "ours-reach1": ("ours", {"noise": {"merge_reach_scale": 1.0}}),
     # the default of session 4 (before the behind-the-object test and the outline matting)
-    "ours-s4": ("ours", {"refine": {"edge_window": 0, "plane_check": {"behind": False}}}),
+    "ours-s4": ("ours", {"refine": {"edge_window": 0,
+                                    "plane_check": {"behind": False, "shifted": False,
+                                                    "object_keep": False}}}),
     "ours-no-behind": ("ours", {"refine": {"plane_check": {"behind": False}}}),
     "ours-no-matte": ("ours", {"refine": {"edge_window": 0}}),
     # session 6: the shifted-patch floor test and the object-keep map (the default since
