@@ -236,3 +236,26 @@ def test_crop_and_half_size_targets(sim):
     c_half = torch.stack([(half * hx).sum(), (half * hy).sum()]) / half.sum()
     assert torch.allclose((c_full - 0.5) / 2, c_half, atol=0.3)
     assert lv[1].image.shape[:2] == lv[1].mask.shape and bool(lv[1].mask.any())
+
+
+def test_lowpass_reaches_training_and_heldout_cameras(sim):
+    """TrainConfig.lowpass is the dilation of every camera the trainer renders with: the
+    full, mask-cropped and half-size training targets and the held-out views (whose renders
+    are then the model's renders at that value)."""
+    from ooi_seg_ros.train.raster_common import RasterCamera
+    from ooi_seg_ros.train.raster_cpu import render
+    from ooi_seg_ros.train.trainer import TrainResult, _prepare
+
+    masks = {v.key: v.gt_mask for v in sim.views}
+    cfg = _cfg(lowpass=0.05, coarse_frac=0.5)
+    tr, held = _prepare(sim, masks, cfg, TrainResult(model=None, config=cfg))
+    assert {f.cam.lowpass for f in tr + held} == {0.05}
+    assert {t.cam.lowpass for f in tr for t in f.levels} == {0.05}
+    assert TrainConfig().lowpass == 0.1
+    r = train(sim, masks, sim.gt_ooi_points[::40], _cfg(lowpass=0.05, iterations=10))
+    v = sim.views[0]
+    with torch.no_grad():
+        img = render(r.model, RasterCamera.from_view(v.camera, v.pose, lowpass=0.05),
+                     torch.zeros(3)).image.clamp(0, 1)
+    assert np.abs((img.numpy() * 255 + 0.5).astype(np.uint8).astype(int)
+                  - r.heldout[0].render.astype(int)).max() <= 1
