@@ -279,6 +279,11 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     the support plane first), the pixels that show a plane (``photo.PlaneConsistency``;
     ``target`` = the cameras' convergence point) are sure background.
     """
+    if not 0.0 <= float(cfg.edge_alpha) <= 1.0:
+        raise ValueError(f"refine.edge_alpha={cfg.edge_alpha}; it is a coverage in [0, 1]")
+    if cfg.plane_check.behind_window < 0:
+        raise ValueError(f"refine.plane_check.behind_window={cfg.plane_check.behind_window}; "
+                         f"use a patch side in px (0 = plane_check.window)")
     fg_obs = _obs_by_view(ooi, views)
     bg_obs = _obs_by_view(background, views)
     params: dict = {"fg_seeds": cfg.fg_seeds}
