@@ -53,12 +53,13 @@ VARIANTS = {
     "ours-s4": ("ours", {"refine": {"edge_window": 0, "plane_check": {"behind": False}}}),
     "ours-no-behind": ("ours", {"refine": {"plane_check": {"behind": False}}}),
     "ours-no-matte": ("ours", {"refine": {"edge_window": 0}}),
-    # session 6: the behind test's 3-px patches, GrabCut on crops up to 320 px, matting at
+    # session 6: the behind test's 3-px patches, GrabCut on crops up to 400 px, matting at
     # coverage 0.4 -- the session-5 default and the new default less each change
     "ours-s5": ("ours", {"refine": {"edge_alpha": 0.5, "max_side": 256,
                                     "plane_check": {"behind_window": 0}}}),
     "ours-bw5": ("ours", {"refine": {"plane_check": {"behind_window": 0}}}),
     "ours-ms256": ("ours", {"refine": {"max_side": 256}}),
+    "ours-ms320": ("ours", {"refine": {"max_side": 320}}),
     "ours-a5": ("ours", {"refine": {"edge_alpha": 0.5}}),
 }
 
