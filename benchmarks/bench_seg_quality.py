@@ -50,17 +50,29 @@ VARIANTS = {
     # eps widening, clusters merged only within the main cluster's own reach (x1.0)
     "ours-reach1": ("ours", {"noise": {"merge_reach_scale": 1.0}}),
     # the default of session 4 (before the behind-the-object test and the outline matting)
-    "ours-s4": ("ours", {"refine": {"edge_window": 0,
+    "ours-s4": ("ours", {"refine": {"edge_window": 0, "max_side": 256,
                                     "plane_check": {"behind": False, "shifted": False,
                                                     "object_keep": False}}}),
     "ours-no-behind": ("ours", {"refine": {"plane_check": {"behind": False}}}),
     "ours-no-matte": ("ours", {"refine": {"edge_window": 0}}),
-    # session 6: the shifted-patch floor test and the object-keep map (the default since
-    # session 6), the session-5 default without both, and each alone
-    "ours-s5": ("ours", {"refine": {"plane_check": {"shifted": False, "object_keep": False}}}),
+    # session 6 (two engineers): the shifted-patch floor test and the object-keep map; the
+    # behind test's 3-px patches, GrabCut on crops up to 400 px, matting at coverage 0.4.
+    # "ours-s5" = the session-5 default; the others = the new default less one change
+    "ours-s5": ("ours", {"refine": {"edge_alpha": 0.5, "max_side": 256,
+                                    "plane_check": {"shifted": False, "object_keep": False,
+                                                    "behind_window": 0}}}),
     "ours-no-shifted": ("ours", {"refine": {"plane_check": {"shifted": False}}}),
     "ours-no-keep": ("ours", {"refine": {"plane_check": {"object_keep": False}}}),
     "ours+band": ("ours", {"refine": {"band_fraction": 0.3}}),
+    "ours-bw5": ("ours", {"refine": {"plane_check": {"behind_window": 0}}}),
+    "ours-ms256": ("ours", {"refine": {"max_side": 256}}),
+    "ours-ms320": ("ours", {"refine": {"max_side": 320}}),
+    "ours-a5": ("ours", {"refine": {"edge_alpha": 0.5}}),
+    # S1's and S2's changes measured separately (each on top of the session-5 default)
+    "ours-s6-plane": ("ours", {"refine": {"edge_alpha": 0.5, "max_side": 256,
+                                          "plane_check": {"behind_window": 0}}}),
+    "ours-s6-behind": ("ours", {"refine": {"plane_check": {"shifted": False,
+                                                           "object_keep": False}}}),
 }
 
 

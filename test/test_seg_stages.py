@@ -352,12 +352,19 @@ def test_edge_matte_grows_an_eroded_mask_to_the_half_coverage_outline():
     assert (out & ~gt).sum() <= 0.05 * (gt & ~mask).sum()  # almost nothing beyond the truth
     assert not (out & ~ndimage.binary_dilation(mask, np.ones((3, 3), bool))).any()
     assert (edge_matte(img.astype(np.uint8), mask, 0) == mask).all()  # 0 = off
+    # the coverage threshold: 0.5 is the default rule; a lower one only adds ring pixels
+    assert (edge_matte(img.astype(np.uint8), mask, 7, 0.5) == out).all()
+    low = edge_matte(img.astype(np.uint8), mask, 7, 0.3)
+    assert (low >= out).all()
+    assert not (low & ~ndimage.binary_dilation(mask, np.ones((3, 3), bool))).any()
 
 
-def test_behind_check_calls_background_behind_the_object_not_the_object():
+@pytest.mark.parametrize("window", [0, 3])
+def test_behind_check_calls_background_behind_the_object_not_the_object(window):
     """Background seen past the object (sim tabletop: chair, shelves, wall) is called
     background at the depth of the nearest background point beyond the object; the object is
-    (almost) never."""
+    (almost) never -- with the planes' 5-px patches and with the behind test's own 3-px ones
+    (``behind_window``: gaps between leaves narrower than a 5-px patch)."""
     from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
     from ooi_seg_ros.sim import simulate_capture
     sim = simulate_capture("tabletop", n_views=24, width=256, height=192, seed=0)
@@ -372,7 +379,7 @@ def test_behind_check_calls_background_behind_the_object_not_the_object():
         bg = ~v.gt_mask & np.isfinite(sim.depths[i])
         cand = p[bg]
         pts.append(cand[rng.choice(len(cand), 400, replace=False)])
-    cfg = PlaneCheckConfig(enabled=True, max_deg=40.0, behind=True)
+    cfg = PlaneCheckConfig(enabled=True, max_deg=40.0, behind=True, behind_window=window)
     below = np.array([0.0, 0.0, 1.0, 1e3])  # a plane far below: only the behind test acts
     pc = PlaneConsistency(views, below, target, cfg)
     pc.behind_xyz = np.vstack(pts)

@@ -76,9 +76,11 @@ def preset(method: str) -> dict:
                           "splat_scale": 0.6, "hull_consistency": False,
                           "hull_carve": False},
                 "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
+                           "edge_alpha": 0.4, "max_side": 400,
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
-                                           "shifted": True, "object_keep": True}}}
+                                           "shifted": True, "object_keep": True,
+                                           "behind_window": 3}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 

@@ -46,6 +46,8 @@ class RefineConfig:
     edge_window: int = 0  # outline matting: a pixel just outside the mask joins it when its
     # colour is nearer the mean of the object pixels than of the background pixels within this
     # window (px) around it; 0 = off (see ``edge_matte``)
+    edge_alpha: float = 0.5  # outline matting: the ring pixel joins when its estimated object
+    # coverage (its colour's position between the two local means) is at least this
     seed: int = 0  # seed of OpenCV's RNG (GrabCut's colour-model initialisation)
     plane_check: PlaneCheckConfig = field(default_factory=PlaneCheckConfig)  # pixels whose
     # colour the support plane explains (photo-consistent with nearby views) are background
@@ -206,7 +208,8 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
     return out, refined, rejected
 
 
-def edge_matte(img: np.ndarray, mask: np.ndarray, window: int) -> np.ndarray:
+def edge_matte(img: np.ndarray, mask: np.ndarray, window: int, alpha: float = 0.5
+               ) -> np.ndarray:
     """``mask`` grown by the pixels of its 1-px outer ring that look more like the object.
 
     An image's outline pixels mix object and background colour (anti-aliasing, lens blur); a
@@ -214,8 +217,10 @@ def edge_matte(img: np.ndarray, mask: np.ndarray, window: int) -> np.ndarray:
     ring pixel, the colour it would have if it were object (background) is estimated as the
     mean of the mask's interior (the background beyond the ring) within ``window`` px; the
     pixel joins the mask when its colour is nearer the object's mean -- the coverage > 0.5 test
-    of a two-colour mix. Only growth: GrabCut's result (a graph cut on reduced crops, then an
-    opening) lies inside the true outline more often than outside it (measured).
+    of a two-colour mix (``alpha``: the coverage threshold; with the pixel's colour c and the
+    means F and B, coverage = (c - B).(F - B) / |F - B|^2). Only growth: GrabCut's result (a
+    graph cut on reduced crops, then an opening) lies inside the true outline more often than
+    outside it (measured).
     """
     if window <= 1 or not mask.any():
         return mask
@@ -233,12 +238,17 @@ def edge_matte(img: np.ndarray, mask: np.ndarray, window: int) -> np.ndarray:
         return mask
     dF = np.zeros(mask.shape, np.float32)
     dG = np.zeros(mask.shape, np.float32)
+    dFG = np.zeros(mask.shape, np.float32)
     for c in range(im.shape[2]):
         F = ndimage.uniform_filter(im[..., c] * fi, window, mode="constant")
+        F /= np.maximum(nf, 1e-6)
         G = ndimage.uniform_filter(im[..., c] * fo, window, mode="constant")
-        dF += (im[..., c] - F / np.maximum(nf, 1e-6)) ** 2
-        dG += (im[..., c] - G / np.maximum(nb, 1e-6)) ** 2
-    return mask | (ok & (dF <= dG))
+        G /= np.maximum(nb, 1e-6)
+        dF += (im[..., c] - F) ** 2
+        dG += (im[..., c] - G) ** 2
+        dFG += (F - G) ** 2
+    # coverage >= alpha  <=>  |c-F|^2 - |c-B|^2 <= (1 - 2 alpha) |F-B|^2 (0.5: nearer F)
+    return mask | (ok & (dF - dG <= (1.0 - 2.0 * float(alpha)) * dFG))
 
 
 def point_support(xyz: np.ndarray, masks: dict[str, np.ndarray], views: list[View]
@@ -277,6 +287,11 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     the support plane first), the pixels that show a plane (``photo.PlaneConsistency``;
     ``target`` = the cameras' convergence point) are sure background.
     """
+    if not 0.0 <= float(cfg.edge_alpha) <= 1.0:
+        raise ValueError(f"refine.edge_alpha={cfg.edge_alpha}; it is a coverage in [0, 1]")
+    if cfg.plane_check.behind_window < 0:
+        raise ValueError(f"refine.plane_check.behind_window={cfg.plane_check.behind_window}; "
+                         f"use a patch side in px (0 = plane_check.window)")
     fg_obs = _obs_by_view(ooi, views)
     bg_obs = _obs_by_view(background, views)
     params: dict = {"fg_seeds": cfg.fg_seeds}
@@ -308,7 +323,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     if cfg.edge_window > 1:
         for v in views:
             if v.key in out:
-                out[v.key] = edge_matte(v.get_image(), out[v.key], int(cfg.edge_window))
+                out[v.key] = edge_matte(v.get_image(), out[v.key], int(cfg.edge_window),
+                                        cfg.edge_alpha)
     params.update({"refined": refined, "rejected": rejected})
     if floor is not None:
         params["plane_check_s"] = round(floor.seconds, 3)
