@@ -251,7 +251,7 @@ def test_lowpass_reaches_training_and_heldout_cameras(sim):
     tr, held = _prepare(sim, masks, cfg, TrainResult(model=None, config=cfg))
     assert {f.cam.lowpass for f in tr + held} == {0.05}
     assert {t.cam.lowpass for f in tr for t in f.levels} == {0.05}
-    assert TrainConfig().lowpass == 0.03
+    assert TrainConfig().lowpass == 0.1
     r = train(sim, masks, sim.gt_ooi_points[::40], _cfg(lowpass=0.05, iterations=10))
     v = sim.views[0]
     with torch.no_grad():

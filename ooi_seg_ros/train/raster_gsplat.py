@@ -16,7 +16,7 @@ from typing import Optional
 import torch
 
 from .gaussians import GaussianModel
-from .raster_common import LOWPASS, RasterCamera, RenderOutput
+from .raster_common import RasterCamera, RenderOutput
 
 
 def gsplat_available() -> bool:
@@ -50,7 +50,7 @@ def render(model: GaussianModel, cam: RasterCamera, background: torch.Tensor,
     colors, alphas, meta = rasterization(
         model.means.to(dev, dt), quats / quats.norm(dim=-1, keepdim=True),
         model.scales.to(dev, dt), model.opacities.to(dev, dt), sh[:, :n_coef], view[None],
-        K[None], cam.width, cam.height, sh_degree=deg, eps2d=LOWPASS,
+        K[None], cam.width, cam.height, sh_degree=deg, eps2d=float(cam.lowpass),
         packed=False)
     # composite over the background here rather than with gsplat's ``backgrounds`` argument,
     # whose expected shape differs between its packed and unpacked modes (1.5.3)

@@ -72,12 +72,14 @@ class TrainConfig:
     crop_to_mask: bool = True  # render and score only each training view's mask bounding box
     # grown by the SSIM window's half size: the loss is the same (pixels outside the mask carry
     # none), the renders cost less. The composite over the background holds inside the crop
-    lowpass: float = 0.03  # pixel^2 added to each Gaussian's 2D covariance when rendering
-    # (3DGS: 0.3, the renderer's default). Smaller = sharper splats: 0.3 -> 0.1 gave +1.0-1.2
-    # dB held-out, 0.1 -> 0.03 another +0.5-0.7 dB on aircraft and tabletop (BENCHMARKS.md,
-    # Training, session 6; images whose texture is point-sampled, as the simulator's are).
-    # The trainer's held-out renders use it; PLY viewers render with 0.3 (slightly softer);
-    # the gsplat back-end uses 0.3 for now
+    lowpass: float = 0.1  # pixel^2 added to each Gaussian's 2D covariance when rendering
+    # (3DGS: 0.3, the renderer's default; 0.1 ~ a pixel's own box filter, 1/12 px^2, as in
+    # Mip-Splatting's 2D filter). 0.3 -> 0.1 gave +1.0-1.2 dB held-out on aircraft and
+    # tabletop (BENCHMARKS.md, Training, session 6). 0.03 gave another +0.5-0.7 dB there, but
+    # that gain comes from the simulator's point-sampled texture (one shading sample per
+    # pixel); a real camera integrates over the pixel, so the default stays at the
+    # pixel-footprint value. The trainer's held-out renders and the gsplat back-end use it;
+    # PLY viewers render with 0.3 (slightly softer)
     coarse_frac: float = 0.0  # train on 2x2-averaged views (a quarter of the pixels) for this
     # fraction of the schedule, then at full resolution
 
