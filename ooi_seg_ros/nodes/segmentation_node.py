@@ -229,6 +229,9 @@ class _OoiCloud:
     source: str  # "run N" (point stages of full run N) or "cloud-only"
 
 
+LIVE_REFINE_MAX_SIDE = 256  # px; see SegmentationNode.__init__
+
+
 class SegmentationNode(Node):
     """Keeps the keyframes and the latest cloud, segments on demand or every N keyframes.
 
@@ -243,6 +246,11 @@ class SegmentationNode(Node):
         self.cfg = SegNodeConfig()
         ConfigParams(self, self.cfg, specs=SPECS)
         self.seg_cfg: SegmentationConfig = make_config(self.cfg.method)
+        # live default: GrabCut on crops reduced to 256 px (the offline preset allows 400). In
+        # the 30 Hz 1280x720 load bench the 400-px crops made full runs 2-3x longer and the SfM
+        # node dropped keyframes; 256 kept 60/60 (BENCHMARKS, Nodes, session 6). Parameter
+        # seg.refine.max_side sets it back.
+        self.seg_cfg.refine.max_side = min(self.seg_cfg.refine.max_side, LIVE_REFINE_MAX_SIDE)
         ConfigParams(self, self.seg_cfg, prefix="seg.")
         self.diag = Diagnostics(self)
         self.throttle = Throttle(self)
