@@ -133,6 +133,9 @@ def main() -> None:
     ap.add_argument("--variant", action="append", default=[],
                     help="NAME:key=value,... an object-only run with these TrainConfig values "
                     "(repeatable; replaces the object-only mode); NAME alone = defaults")
+    ap.add_argument("--sim-shade-subsamples", action="store_true",
+                    help="simulate with every 2x2 sub-sample shaded (texture integrated over "
+                         "the pixel) instead of the default point-sampled texture")
     ap.add_argument("--silhouette-cap", action="store_true",
                     help="only print the PSNR cap a perfect object-only model has (no training)")
     a = ap.parse_args()
@@ -144,7 +147,8 @@ def main() -> None:
               f"{'SSIM(mask)':>10} {'PSNR(interior)':>14} {'gain-fit':>8} "
               f"{'PSNR/SSIM(obj truth)':>20} {'cpu s':>7} {'wall s':>7}")
     for scene in a.scenes.split(","):
-        sim = simulate_capture(scene, n_views=a.views, width=w, height=h, seed=0)
+        sim = simulate_capture(scene, n_views=a.views, width=w, height=h, seed=0,
+                               shade_subsamples=a.sim_shade_subsamples)
         cap = sim.capture
         if a.silhouette_cap:
             held = [v.key for i, v in enumerate(cap.views) if i % 8 == 0]

@@ -36,6 +36,8 @@ class SimConfig:
     seed: int = 0  # scene layout, textures, camera jitter and sensor noise
     rings: Optional[list[list[float]]] = None  # [[elevation_deg, distance/OOI radius], ...]
     supersample: int = 2  # sub-samples per pixel side (2 = 2x2 anti-aliasing, mask majority)
+    shade_subsamples: bool = False  # shade every sub-sample (texture integrated over the pixel,
+    # ~4x the texturing cost) rather than once per pixel inside a part (point-sampled texture)
     aim_jitter: float = 0.05  # std of the aim point offset, in OOI radii
     roll_jitter_deg: float = 1.5  # std of camera roll about the optical axis
     frame_interval_s: float = 1.0  # time between images (stamps)
@@ -68,7 +70,8 @@ class SimCapture:
         rng = _view_rng(cfg.seed, index)
         exposure = float(np.clip(1.0 + rng.normal(0, cfg.exposure_jitter), 0.8, 1.2))
         res = Renderer(self.scene).render(view.camera, view.pose, cfg.supersample, None, 0.0,
-                                          exposure, object_only=True)
+                                          exposure, object_only=True,
+                                          shade_subsamples=cfg.shade_subsamples)
         img = res.rgb.astype(np.float32) / 255.0
         return img
 
@@ -213,7 +216,8 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
     for k, pose in enumerate(poses):
         rng = _view_rng(cfg.seed, k)
         exposure = float(np.clip(1.0 + rng.normal(0, cfg.exposure_jitter), 0.8, 1.2))
-        res = renderer.render(cam, pose, cfg.supersample, rng, cfg.sensor_noise, exposure)
+        res = renderer.render(cam, pose, cfg.supersample, rng, cfg.sensor_noise, exposure,
+                              shade_subsamples=cfg.shade_subsamples)
         stamp = STAMP_BASE_NS + int(round(k * cfg.frame_interval_s * 1e9))
         views.append(View(key=str(stamp), stamp_ns=stamp, camera=cam, pose=pose,
                           image=res.rgb, gt_mask=res.mask, source=f"sim:{cfg.scene}"))
@@ -221,6 +225,8 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
     meta = scene.summary()
     meta["seed"] = int(cfg.seed)
     meta["config"] = asdict(cfg)
+    if not cfg.shade_subsamples:  # recorded only when on: captures (and the demo bag)
+        del meta["config"]["shade_subsamples"]  # simulated before the option keep their bytes
     capture = Capture(views=views, source=f"sim:{cfg.scene}:seed{cfg.seed}",
                       gt_ooi_points=scene.sample_ooi_points(cfg.gt_points, cfg.seed), meta=meta)
     return SimCapture(capture, scene, cfg, depths)

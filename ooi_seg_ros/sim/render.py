@@ -139,7 +139,8 @@ class Renderer:
 
     def render(self, cam: CameraIntrinsics, pose: Pose, supersample: int = 2,
                rng: Optional[np.random.Generator] = None, sensor_noise: float = 1.5,
-               exposure: float = 1.0, object_only: bool = False) -> RenderResult:
+               exposure: float = 1.0, object_only: bool = False,
+               shade_subsamples: bool = False) -> RenderResult:
         """Render the view ``pose`` (camera-to-world, optical frame) with intrinsics ``cam``.
 
         ``sensor_noise`` is the std of additive Gaussian pixel noise in 0-255 units (drawn from
@@ -147,6 +148,9 @@ class Renderer:
         ``object_only``: every sub-sample that does not see the OOI is black, so an outline
         pixel holds coverage x object colour -- what an object-only model composited over black
         should render (shadows the rest of the scene casts on the object stay).
+        ``shade_subsamples``: shade every sub-sample (the texture integrated over the pixel, as
+        a camera does) instead of once per pixel whose sub-samples all hit the same part (the
+        default, cheaper: texture detail finer than a pixel is then point-sampled).
         """
         ss = max(int(supersample), 1)
         S = ss * ss
@@ -171,7 +175,8 @@ class Renderer:
         # Adaptive anti-aliasing: a pixel whose sub-samples all see the same part (or all the
         # sky) is shaded once at the mean of its sub-samples; only pixels on silhouettes and
         # part boundaries are shaded per sub-sample. Casting rays is cheap, texturing is not.
-        coherent = np.all(part == part[:, :1], axis=1)
+        coherent_geo = np.all(part == part[:, :1], axis=1)
+        coherent = coherent_geo & (not shade_subsamples)
         p = o + np.where(hit, t, 0.0)[:, None] * d
         uv = ans["primitive_uvs"].numpy()
         f = self.F[prim]
@@ -216,7 +221,7 @@ class Renderer:
         img = img.reshape(H, W, 3)
         mask = mask.reshape(H, W)
         depth_s = np.where(hit, t * zc, np.inf).reshape(-1, S)
-        depth = np.where(coherent, depth_s.mean(1), depth_s.min(1)).reshape(H, W)
+        depth = np.where(coherent_geo, depth_s.mean(1), depth_s.min(1)).reshape(H, W)
         depth = depth.astype(np.float32)
         img = img * (exposure * 255.0)
         if rng is not None and sensor_noise > 0:
