@@ -141,8 +141,23 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
     t0 = time.monotonic()
     load0, cpu0 = os.getloadavg()[0], time.process_time()
     pub_thread.start()
+    rss_kids: list[float] = []  # worker processes (SfM features, segmentation runs)
+    kid_cpu: dict = {}  # pid -> CPU seconds last seen (a worker may end before the stream)
+
+    def kids_rss() -> float:
+        tot = 0.0
+        for c in proc.children(recursive=True):
+            try:
+                tot += c.memory_info().rss
+                ct = c.cpu_times()
+                kid_cpu[c.pid] = ct.user + ct.system
+            except psutil.Error:
+                pass
+        return tot / 2 ** 20
+
     while pub_thread.is_alive():
         rss.append(proc.memory_info().rss / 2 ** 20)
+        rss_kids.append(kids_rss())
         time.sleep(1.0)
     out = {"published": stats.get("published", 0), "late_publishes": stats.get("late", 0),
            "rss_mb_first": rss[1] if len(rss) > 1 else None,
@@ -271,6 +286,9 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
         out["received_by_subscriber"] = got["images"]
     out["wall_s"] = round(time.monotonic() - t0, 1)
     out["process_cpu_s"] = round(time.process_time() - cpu0, 1)
+    out["worker_processes_cpu_s"] = round(sum(kid_cpu.values()), 1)  # to the stream's end
+    out["worker_processes_rss_mb_last_peak"] = ((round(rss_kids[-1]), round(max(rss_kids)))
+                                                if rss_kids else None)
     out["loadavg_1min_start_end"] = (round(load0, 1), round(os.getloadavg()[0], 1))
     ex.shutdown(timeout_sec=5)
     for n in nodes:
@@ -524,7 +542,9 @@ def main() -> None:
           f"{res['masks_final_reused']}, keyframes without a final mask "
           f"{res['keyframes_without_final_mask']}; mask IoU last provisional "
           f"{res['iou_last_provisional_mask']} / final {res['iou_final_mask']} (mean, count); "
-          f"wall {res['wall_s']} s, process CPU {res['process_cpu_s']} s, load average "
+          f"wall {res['wall_s']} s, process CPU {res['process_cpu_s']} s (worker processes "
+          f"{res.get('worker_processes_cpu_s')} CPU-s, RSS last/peak "
+          f"{res.get('worker_processes_rss_mb_last_peak')} MB), load average "
           f"{res['loadavg_1min_start_end']} (start, end)")
 
 

@@ -3,7 +3,10 @@
 Subscribes: ``sfm/points`` and ``sfm/observations`` (latched), ``keyframe/image``,
 ``keyframe/camera_info``, ``keyframe/pose`` (matched by exact stamp). Runs the segmentation
 pipeline (the same core code as ``ooi-seg segment``) every ``every_n_keyframes`` new keyframes
-and on the ``~/segment`` service (std_srvs/Trigger), in a worker thread. Publishes ``ooi/points``
+and on the ``~/segment`` service (std_srvs/Trigger), driven from a worker thread; the run itself
+goes to a worker *process* (``segment_worker``, ``seg.worker``) where the process may use two
+cores, so that it neither waits for the GIL behind the executor and the nodes beside it nor
+holds it from them. Publishes ``ooi/points``
 (PointCloud2, latched), ``ooi/mesh`` (visualization_msgs/Marker TRIANGLE_LIST, latched) and
 ``ooi/mask`` (mono8, one per keyframe, stamp = the keyframe image's stamp; all keyframes are
 re-published whenever the mesh changes), plus ``diagnostics``.
@@ -42,7 +45,8 @@ Memory is bounded in bytes: keyframe images are kept downscaled by an integer fa
 from their size (``image_downscale``/``image_max_pixels``) within ``image_budget_mb``; beyond
 it the most redundant keyframe (camera closest to another kept one) is evicted, counted and
 logged. The segmentation runs on those copies; masks are published at each keyframe's own
-size (nearest upsampling of the mask rendered at the working size).
+size (nearest upsampling of the mask rendered at the working size). The worker process keeps
+its own copy of them (sent once per keyframe), so image memory is twice the budget with it.
 """
 
 from __future__ import annotations
@@ -66,7 +70,9 @@ from visualization_msgs.msg import Marker
 from .. import msgconv
 from ..core.types import Capture, InputError, TriMesh, View
 from ..seg.masks import render_masks
+from ..core.worker import WorkerDied, usable_cores
 from ..seg.pipeline import SegmentationConfig, make_config, segment
+from ..seg.worker import SegmentationWorker
 from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle,
                      auto_image_budget_bytes, downscale_camera, guarded, latched_qos,
                      mask_frame_id, reliable_qos, run_node, upscale_mask)
@@ -157,6 +163,13 @@ class SegNodeConfig:
                                        "kept from earlier runs, so every keyframe's mask is "
                                        "sent again whenever the mesh changes (false = only "
                                        "the masks the run made)"})
+    segment_worker: int = dataclasses.field(
+        default=-1, metadata={"doc": "full runs in a worker process of their own (1), in "
+                                     "this node's thread (0), or -1: a worker where the "
+                                     "process may use 2+ cores. In the node's process a run "
+                                     "shares the GIL with the callbacks and any node beside "
+                                     "it (measured ~10x slower per mask under camera load); "
+                                     "the worker keeps its own copy of the keyframe images"})
     change_check_side: int = dataclasses.field(
         default=96, metadata={"doc": "long side in pixels of the coarse silhouettes compared "
                                      "for final_refresh_change"})
@@ -196,9 +209,18 @@ SPECS = {
                            read_only=True),
     "mask_qos_depth": ParamSpec("history depth of the mask publisher", 1, 10000,
                                 read_only=True),
+    "segment_worker": ParamSpec("full runs in a worker process (-1 = auto, 0 = none)", -1, 1,
+                                read_only=True),
     "frame_id": ParamSpec("world frame of outputs", read_only=True),
     "method": ParamSpec("segmentation preset", choices=("ours", "paper"), read_only=True),
 }
+
+
+class _Points:
+    """An OOI cloud as ``on_cloud`` reads it (from the worker: coordinates and colours)."""
+
+    def __init__(self, xyz: np.ndarray, rgb: np.ndarray) -> None:
+        self.xyz, self.rgb = xyz, rgb
 
 
 class _PointStagesDone(Exception):
@@ -287,6 +309,11 @@ class SegmentationNode(Node):
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.cloud_runs = 0
+        use_worker = (self.cfg.segment_worker if self.cfg.segment_worker >= 0
+                      else int(usable_cores() >= 2))
+        self._worker: Optional[SegmentationWorker] = None  # started with the first full run
+        self._use_worker = bool(use_worker)
+        self.diag.set("segment_worker", "yes" if self._use_worker else "no")
         self.cloud_run_times: collections.deque = collections.deque(maxlen=100)  # s, completed
 
         rq = reliable_qos(depth=self.cfg.qos_depth)
@@ -435,15 +462,24 @@ class SegmentationNode(Node):
                 self.diag.timing("segment_cloud", time.monotonic() - t0)
                 self._publish_cloud(ooi.xyz, ooi.rgb, seq, cloud_stamp, f"run {run_no}")
 
-            keys, sil = None, None
+            worker = self._get_worker()
+
+            keys, sil, prepass_s = None, None, None
             if self.cfg.incremental_final and not all_masks:
                 # the point stages first (deterministic: the same OOI cloud as the run's), to
                 # choose the keyframes whose masks this run makes
-                try:
-                    segment(capture, cloud, self.seg_cfg,
-                            on_cloud=lambda ooi: (on_cloud(ooi), _raise_done()))
-                except _PointStagesDone:
-                    pass
+                t_pts = time.monotonic()
+                if worker is not None:
+                    xyz, rgb = self._in_worker(worker.point_stages, views, cloud, self.seg_cfg)
+                    on_cloud(_Points(xyz, rgb))
+                else:
+                    try:
+                        segment(capture, cloud, self.seg_cfg,
+                                on_cloud=lambda ooi: (on_cloud(ooi), _raise_done()))
+                    except _PointStagesDone:
+                        pass
+                prepass_s = time.monotonic() - t_pts
+                self.diag.timing("segment_points_prepass", prepass_s)
                 keys, sil = self._keys_to_mask(views, got_cloud[0].xyz)
                 if not keys:  # every keyframe keeps its final mask (final_refresh_share 0)
                     self.runs += 1
@@ -453,9 +489,15 @@ class SegmentationNode(Node):
                     self.diag.count("masks_reused", len(views))
                     self.diag.set_state(f"run {self.runs}: no keyframe needed a new mask")
                     return
-            result = segment(capture, cloud, self.seg_cfg,
-                             on_cloud=None if keys is not None else on_cloud,
-                             mask_keys=keys)
+            if worker is not None:
+                result = self._in_worker(worker.segment, views, cloud, self.seg_cfg,
+                                         mask_keys=keys)
+                if keys is None:
+                    on_cloud(result.ooi_cloud)
+            else:
+                result = segment(capture, cloud, self.seg_cfg,
+                                 on_cloud=None if keys is not None else on_cloud,
+                                 mask_keys=keys)
             self.last_result = result
             self.runs += 1
             self.last_run_newest_ns = max(v.stamp_ns for v in views)
@@ -473,9 +515,18 @@ class SegmentationNode(Node):
             why = (f" (new {d.get('masks_new_last_run')}, changed "
                    f"{d.get('masks_changed_last_run')}, rotated "
                    f"{d.get('masks_rotated_last_run')})" if keys is not None else "")
+            stages = ", ".join(f"{k} {v:.1f}" for k, v in result.timings.items())
+            if prepass_s is not None:
+                stages = f"point stages first {prepass_s:.1f}, " + stages
+            plane_s = (result.params.get("refine") or {}).get("plane_check_s")
+            if plane_s is not None:
+                stages += f" (plane check {plane_s:.1f})"
+            for k, v in result.timings.items():
+                self.diag.timing(f"segment_{k}", v)
             self.get_logger().info(
                 f"run {self.runs}: masked {len(result.masks)} of {len(views)} keyframes{why}, "
-                f"kept {reused} final masks of earlier runs; {time.monotonic() - t0:.1f} s")
+                f"kept {reused} final masks of earlier runs; {time.monotonic() - t0:.1f} s "
+                f"[{stages}]")
             self.diag.set_state(f"run {self.runs}: {len(result.ooi_cloud)} OOI points, "
                                 f"{len(result.masks)} masks made, {reused} final masks of "
                                 f"earlier runs kept")
@@ -485,6 +536,44 @@ class SegmentationNode(Node):
             self.throttle.warn("segfail", f"segmentation failed: {type(exc).__name__}: {exc}")
         finally:
             self._busy.release()
+
+    def _get_worker(self) -> Optional[SegmentationWorker]:
+        """The full runs' worker process (started on first use); None = run in this thread."""
+        if not self._use_worker:
+            return None
+        if self._worker is None or not self._worker.alive:
+            if self._worker is not None:
+                self._worker.close(timeout=1.0)
+            try:
+                self._worker = SegmentationWorker()
+            except OSError as exc:  # no interpreter to start, no processes left
+                self._worker_failed(exc)
+                return None
+        return self._worker
+
+    def _worker_failed(self, exc: BaseException) -> None:
+        self.diag.count("segment_worker_failures")
+        self.throttle.warn("segworker", f"segmentation worker process failed ({exc}); full "
+                                        f"runs go on in the node's own thread")
+        self._use_worker = False
+        self.diag.set("segment_worker", f"failed: {exc}")
+
+    def _in_worker(self, fn, *args, **kwargs):
+        """``fn`` (a ``SegmentationWorker`` method); if the worker dies, the same call in this
+        thread (and every later run: counted, logged)."""
+        try:
+            return fn(*args, **kwargs)
+        except WorkerDied as exc:
+            if self._stop.is_set():  # closed under a running job: the node is going
+                raise
+            self._worker_failed(exc)
+        views, cloud, cfg = args
+        capture = Capture(views=views, source="ros")
+        if fn.__name__ == "point_stages":
+            from ..seg.worker import point_stages
+            ooi = point_stages(capture, cloud, cfg)
+            return ooi.xyz, ooi.rgb
+        return segment(capture, cloud, cfg, **kwargs)
 
     def _publish_mask(self, mask: np.ndarray, stamp_ns: int, full: tuple,
                       provisional_from: Optional[int] = None) -> bool:
@@ -738,11 +827,15 @@ class SegmentationNode(Node):
             return sorted(s for s in self._provisional if s in self.keyframes)
 
     def close(self) -> None:
-        """Stops the fast-path thread (a running full segmentation is a daemon thread)."""
+        """Stops the fast-path thread (a running full segmentation is a daemon thread) and
+        the worker process."""
         self._stop.set()
         self._wake.set()
         if self._fast.is_alive() and self._fast is not threading.current_thread():
             self._fast.join(timeout=10.0)
+        worker, self._worker = self._worker, None
+        if worker is not None:
+            worker.close(timeout=5.0)
 
     def destroy_node(self) -> None:
         self.close()

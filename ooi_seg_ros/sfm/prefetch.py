@@ -13,190 +13,54 @@ keyframe image and returns keypoints, quantised descriptors and colours
 bit-identical to ``IncrementalSfM.add_keyframe(view)`` alone. At most ``ahead`` keyframes are
 in flight, so memory stays bounded (one image and one feature set each).
 
-The worker is a plain ``python -c`` subprocess speaking pickle over its stdin/stdout, not a
-``multiprocessing`` child: ``spawn`` and ``forkserver`` re-import the caller's main script
-(running an unguarded script a second time), and ``fork`` is unsafe in a process with threads
-such as a ROS node. If the worker dies, the keyframes in flight are extracted in the calling
-thread and the pipeline carries on serially (counted as ``feature_worker_failures``).
+The worker is a ``core.worker.SubprocessWorker`` (a ``python -c`` subprocess, not a
+``multiprocessing`` child: see there). If the worker dies, the keyframes in flight are
+extracted in the calling thread and the pipeline carries on serially (counted as
+``feature_worker_failures``).
 """
 
 from __future__ import annotations
 
 import collections
 import logging
-import os
-import pickle
-import queue
-import subprocess
-import sys
-import threading
 import time
 from concurrent.futures import Future
-from pathlib import Path
 from typing import Iterable, Iterator, Optional
 
 from ..core.types import View
+from ..core.worker import SubprocessWorker, WorkerDied, usable_cores
 from .incremental import (IncrementalConfig, IncrementalSfM, KeyframeFeatures,
                           _check_view, extract_features, make_sift, sift_first_octave)
 
 LOG = logging.getLogger(__name__)
 
-# in the worker process: its config and one SIFT extractor per first octave
-_WORKER: dict = {}
 
-
-def _worker_extract(img, cam, key: str) -> KeyframeFeatures:
-    cfg = _WORKER["config"]
+def _extract_job(state: dict, job: tuple) -> KeyframeFeatures:
+    """Worker handler: (image, camera, key) -> features, one SIFT extractor per first octave
+    kept in the worker's ``state`` (``state["init"]`` = the ``IncrementalConfig``)."""
+    img, cam, key = job
+    cfg = state["init"]
     octave = sift_first_octave(cfg, cam.width, cam.height)
-    sift = _WORKER.setdefault("sift", {})
+    sift = state.setdefault("sift", {})
     if octave not in sift:
         sift[octave] = make_sift(cfg, octave)
     return extract_features(sift[octave], img, cam, key, octave)
 
 
-def _serve() -> None:
-    """The worker's main loop: config first, then (id, image, camera, key) jobs until EOF."""
-    import signal
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's; it closes our stdin
-    out = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)  # a library printing to stdout must not corrupt the protocol
-    inp = sys.stdin.buffer
-    _WORKER["config"] = pickle.load(inp)
-    import pycolmap  # noqa: F401  (loaded before the first keyframe arrives)
-    while True:
-        try:
-            job = pickle.load(inp)
-        except EOFError:
-            return
-        if job is None:
-            return
-        jid, img, cam, key = job
-        try:
-            res = (jid, True, _worker_extract(img, cam, key))
-        except Exception as exc:  # noqa: BLE001 — handed to the caller, who decides
-            try:
-                pickle.dumps(exc)
-            except Exception:  # noqa: BLE001 — an exception that does not pickle
-                exc = RuntimeError(repr(exc))
-            res = (jid, False, exc)
-        try:
-            pickle.dump(res, out, protocol=pickle.HIGHEST_PROTOCOL)
-            out.flush()
-        except OSError:  # the parent has gone
-            return
-
-
-class WorkerDied(RuntimeError):
-    """The feature worker process ended or its pipe broke."""
-
-
-class FeatureWorker:
+class FeatureWorker(SubprocessWorker):
     """A subprocess extracting ``KeyframeFeatures`` in submission order (``submit`` returns a
-    ``Future``). Writing images and reading results run on two small I/O threads, so neither
-    ``submit`` nor the worker waits for the other."""
+    ``Future``)."""
 
     def __init__(self, config: IncrementalConfig):
-        import ooi_seg_ros
-        root = str(Path(ooi_seg_ros.__file__).resolve().parents[1])
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in [env.get("PYTHONPATH")] if p])
-        env.setdefault("OMP_NUM_THREADS", "1")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-c", f"from {__name__} import _serve; _serve()"],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
-        self._lock = threading.Lock()
-        self._futures: dict[int, Future] = {}
-        self._next_id = 0
-        self._dead: Optional[str] = None
-        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
-        self._jobs.put(config)
-        self._writer = threading.Thread(target=self._write_loop, daemon=True,
-                                        name="sfm-feature-writer")
-        self._reader = threading.Thread(target=self._read_loop, daemon=True,
-                                        name="sfm-feature-reader")
-        self._writer.start()
-        self._reader.start()
+        super().__init__(f"{__name__}:_extract_job", config, name="sfm-feature")
 
-    @property
-    def alive(self) -> bool:
-        return self._dead is None
-
-    def submit(self, img, cam, key: str) -> Future:
-        """Queues one extraction; the Future raises ``WorkerDied`` if the worker goes."""
-        fut: Future = Future()
-        with self._lock:
-            if self._dead is not None:
-                raise WorkerDied(self._dead)
-            jid = self._next_id
-            self._next_id += 1
-            self._futures[jid] = fut
-        self._jobs.put((jid, img, cam, key))
-        return fut
-
-    def _fail_all(self, why: str) -> None:
-        with self._lock:
-            if self._dead is None:
-                self._dead = why
-            futs, self._futures = list(self._futures.values()), {}
-        for f in futs:
-            if not f.done():
-                f.set_exception(WorkerDied(why))
-
-    def _write_loop(self) -> None:
-        try:
-            while True:
-                job = self._jobs.get()
-                if job is None:
-                    break
-                pickle.dump(job, self.proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
-                self.proc.stdin.flush()
-        except (OSError, ValueError) as exc:  # broken pipe / closed file: the worker is gone
-            self._fail_all(f"cannot write to the feature worker: {exc}")
-            return
-        try:
-            self.proc.stdin.close()
-        except OSError:
-            pass
-
-    def _read_loop(self) -> None:
-        while True:
-            try:
-                jid, ok, value = pickle.load(self.proc.stdout)
-            except (EOFError, OSError, pickle.UnpicklingError, ValueError) as exc:
-                code = self.proc.poll()
-                self._fail_all(f"feature worker ended (exit code {code}): {exc!r}")
-                return
-            with self._lock:
-                fut = self._futures.pop(jid, None)
-            if fut is None:
-                continue
-            if ok:
-                fut.set_result(value)
-            else:
-                fut.set_exception(value)
-
-    def close(self, timeout: float = 10.0) -> None:
-        """Ends the worker (after the jobs already queued); kills it if it does not go."""
-        self._jobs.put(None)
-        try:
-            self.proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self._writer.join(timeout=1.0)
-        self._reader.join(timeout=1.0)
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
-        self._fail_all("feature worker closed")
+    def submit(self, img, cam, key: str) -> Future:  # type: ignore[override]
+        return super().submit((img, cam, key))
 
 
 def default_feature_workers() -> int:
     """1 where the process may use 2+ CPU cores (pipelining pays), else 0 (serial)."""
-    try:
-        n = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        n = os.cpu_count() or 1
-    return 1 if n >= 2 else 0
+    return 1 if usable_cores() >= 2 else 0
 
 
 class PipelinedSfM:
