@@ -208,7 +208,9 @@ def test_sfm_on_downscaled_copies_publishes_source_pixels(ctx):
             node.on_pose(msgconv.pose_to_pose_stamped(v.pose, stamp, "map"))
             node.on_image(msgconv.rgb_to_image(v.get_image(), stamp, "cam"))
         deadline = time.monotonic() + 120
-        while node.keyframes_processed < node.selector.accepted and time.monotonic() < deadline:
+        # frames pass a queue and the selector in other threads: wait for all of them
+        while ((node.keyframes_processed < node.selector.accepted or node.selector.accepted < 6
+                or node.work.qsize()) and time.monotonic() < deadline):
             time.sleep(0.1)
         assert node.sfm_factor == 2
         assert node.keyframes_processed == node.selector.accepted >= 6

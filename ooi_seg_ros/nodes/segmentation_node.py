@@ -251,7 +251,7 @@ class _OoiCloud:
     source: str  # "run N" (point stages of full run N) or "cloud-only"
 
 
-LIVE_REFINE_MAX_SIDE = 256  # px; see SegmentationNode.__init__
+LIVE_REFINE_MAX_SIDE = 256  # px, without the worker process; see SegmentationNode.__init__
 
 
 class SegmentationNode(Node):
@@ -268,11 +268,16 @@ class SegmentationNode(Node):
         self.cfg = SegNodeConfig()
         ConfigParams(self, self.cfg, specs=SPECS)
         self.seg_cfg: SegmentationConfig = make_config(self.cfg.method)
-        # live default: GrabCut on crops reduced to 256 px (the offline preset allows 400). In
-        # the 30 Hz 1280x720 load bench the 400-px crops made full runs 2-3x longer and the SfM
-        # node dropped keyframes; 256 kept 60/60 (BENCHMARKS, Nodes, session 6). Parameter
-        # seg.refine.max_side sets it back.
-        self.seg_cfg.refine.max_side = min(self.seg_cfg.refine.max_side, LIVE_REFINE_MAX_SIDE)
+        self._use_worker = bool(self.cfg.segment_worker if self.cfg.segment_worker >= 0
+                                else usable_cores() >= 2)
+        if not self._use_worker:
+            # full runs in this process: GrabCut on crops reduced to 256 px (the preset allows
+            # 400). In the 30 Hz 1280x720 load bench the 400-px crops made in-process runs 2-3x
+            # longer and the SfM node dropped keyframes; 256 kept 60/60 (BENCHMARKS, Nodes,
+            # session 6). With the worker process 400 px kept up (60/60, final-mask IoU 0.925
+            # against 0.876 at 256; session 7). Parameter seg.refine.max_side overrides.
+            self.seg_cfg.refine.max_side = min(self.seg_cfg.refine.max_side,
+                                               LIVE_REFINE_MAX_SIDE)
         ConfigParams(self, self.seg_cfg, prefix="seg.")
         self.diag = Diagnostics(self)
         self.throttle = Throttle(self)
@@ -309,10 +314,7 @@ class SegmentationNode(Node):
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.cloud_runs = 0
-        use_worker = (self.cfg.segment_worker if self.cfg.segment_worker >= 0
-                      else int(usable_cores() >= 2))
         self._worker: Optional[SegmentationWorker] = None  # started with the first full run
-        self._use_worker = bool(use_worker)
         self.diag.set("segment_worker", "yes" if self._use_worker else "no")
         self.cloud_run_times: collections.deque = collections.deque(maxlen=100)  # s, completed
 
