@@ -26,7 +26,7 @@ lint: $(STAMP)
 bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(VENV)/bin/python $$b || exit 1; done
 
-# Regenerates the bundled demo capture deterministically (same bytes every time).
+# Regenerates the bundled demo capture deterministically (same bytes on the same CPU type).
 demo-bag: $(STAMP)
 	$(VENV)/bin/ooi-seg simulate --scene aircraft --views 60 --size 320x240 --seed 0 \
 		--out $(DEMO_BAG)
