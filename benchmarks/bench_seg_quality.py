@@ -75,6 +75,7 @@ VARIANTS = {
                                                            "object_keep": False}}}),
     # session 7: the session-6 default, before the multi-view hull additions
     "ours-s6": ("ours", {"refine": {"hull_add": False}}),
+    "ours+hull-cut": ("ours", {"refine": {"hull_cut": True}}),
 }
 
 

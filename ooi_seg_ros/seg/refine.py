@@ -58,6 +58,8 @@ class RefineConfig:
     # share of the views that frame it hold it (0.5 = a majority of the views)
     hull_voxel_px: float = 1.0  # hull_add: voxel edge in pixels at the object's median depth
     # (the grid follows the images' resolution: one voxel ~ one pixel's footprint)
+    hull_cut: bool = False  # hull_add: also drop the mask pixels whose rays miss that hull (a
+    # blob only a minority of the views hold); off: it costs the aircraft's thin tips (recall)
     hull_max_voxels: int = 1_000_000  # hull_add: coarser voxels when the grid would be larger
     # (its cost: one projection of the grid per view; 1M and 4M gave the same masks +-0.001)
     plane_check: PlaneCheckConfig = field(default_factory=PlaneCheckConfig)  # pixels whose
@@ -309,7 +311,8 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
     of that view explains better than its background model. Pixels are only added: a part
     one view missed (no SfM point, GrabCut's smoothness cut it off) is brought back from the
     views that found it; the hull alone is fat around thin parts (the colour test decides).
-    Views without colour models (GrabCut not run) are left as they are.
+    Views without colour models (GrabCut not run) are left as they are. ``hull_cut`` also
+    removes from those views' masks the pixels whose rays miss the hull.
     """
     import cv2  # noqa: F401 -- the refinement's dependency; models come from cv2.grabCut
     keys = [v.key for v in views if v.key in masks]
@@ -359,6 +362,9 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
             continue
         bgd, fgd, sure_bg = models[v.key]
         m = masks[v.key]
+        if cfg.hull_cut:
+            m = m & hull[v.key]
+            out[v.key] = m
         cand = hull[v.key] & ~m & ~sure_bg
         if not cand.any():
             continue
