@@ -73,6 +73,9 @@ VARIANTS = {
                                           "plane_check": {"behind_window": 0}}}),
     "ours-s6-behind": ("ours", {"refine": {"plane_check": {"shifted": False,
                                                            "object_keep": False}}}),
+    # session 7: the session-6 default, before the multi-view hull additions
+    "ours-s6": ("ours", {"refine": {"hull_add": False}}),
+    "ours+hull-cut": ("ours", {"refine": {"hull_cut": True}}),
 }
 
 

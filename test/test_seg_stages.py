@@ -439,3 +439,55 @@ def test_shifted_plane_check_and_object_keep_on_a_known_scene():
     assert hits["shifted"][1] > 1.2 * hits["centred"][1]  # more of the floor within 3 px
     assert hits["shifted"][0] < 0.02 * n_obj
     assert keep_n > 0.05 * n_obj and keep_obj > 0.95 * keep_n
+
+
+def _gmm_model(mean_bgr, var):
+    """A one-component GrabCut colour model (OpenCV's [1, 65] layout, 5 components)."""
+    a = np.zeros(65)
+    a[0] = 1.0
+    a[5:8] = mean_bgr
+    for k in range(5):
+        a[20 + 9 * k:29 + 9 * k] = (np.eye(3) * var).ravel()
+    return a[None]
+
+
+def test_gmm_log_likelihood_matches_a_gaussian():
+    from scipy.stats import multivariate_normal
+    from ooi_seg_ros.seg.refine import gmm_log_likelihood
+    x = np.array([[10.0, 20.0, 30.0], [200.0, 0.0, 5.0]])
+    got = gmm_log_likelihood(_gmm_model([12, 18, 33], 50.0), x)
+    want = multivariate_normal([12, 18, 33], np.eye(3) * 50.0).logpdf(x)
+    assert np.allclose(got, want)
+
+
+def test_hull_additions_bring_back_a_part_other_views_hold():
+    """A part missing from one view's mask returns when the other views' masks hold it and
+    its colour is the object's; a hole of background colour inside the hull stays out."""
+    from ooi_seg_ros.seg.masks import point_radii
+    from ooi_seg_ros.seg.refine import RefineConfig, hull_additions
+    base = _ring_views(8)
+    xyz = _sphere(1500)
+    masks = point_masks(xyz, point_radii(xyz, 4, 1.0), base, MaskConfig(closing_kernel=3))
+    views = []
+    for v in base:
+        img = np.zeros((48, 64, 3), np.uint8)
+        img[...] = (40, 160, 40)  # green background
+        img[masks[v.key]] = (200, 30, 30)  # red object
+        views.append(View(v.key, v.stamp_ns, v.camera, v.pose, img))
+    m0 = masks[views[0].key]
+    ys, xs = np.nonzero(m0)
+    cut = m0 & (xs.mean() + 3 < np.arange(64))[None, :]  # the right part of view 0's mask
+    hole = m0 & (np.arange(64) < xs.mean() - 3)[None, :] & (np.arange(48) < ys.mean())[:, None]
+    views[0].get_image()[hole] = (40, 160, 40)  # background colour inside the silhouette
+    masks[views[0].key] = m0 & ~cut & ~hole
+    fgd = _gmm_model([30, 30, 200], 100.0)  # BGR, as GrabCut sees the image
+    bgd = _gmm_model([40, 160, 40], 100.0)
+    models = {v.key: (bgd, fgd, np.zeros_like(m0)) for v in views}
+    out, p = hull_additions(masks, views, xyz, models, RefineConfig(hull_add=True))
+    assert p["voxels"] > 0 and p["added_px"] > 0
+    got = out[views[0].key]
+    assert got[cut].mean() > 0.9  # the missing part is back
+    assert not got[hole].any()  # background colour is not added
+    assert not (got & ~m0).any()  # nothing outside the true silhouette
+    for v in views[1:]:  # complete masks gain (almost) nothing
+        assert (out[v.key] & ~masks[v.key]).sum() <= 0.02 * masks[v.key].sum()

@@ -11,6 +11,10 @@ behind it) is sure background -- next to the object also when only a patch shift
 pixel matches and the pixel's own colour does -- while pixels whose colour the object's depth
 explains and the plane's does not stay object; the refined outline then takes the ring
 pixels whose colour is nearer the object's than the background's (``refine.edge_matte``).
+Before that, each view's mask takes the pixels whose rays meet the visual hull of all views'
+refined masks (voxels that a majority of the views hold) and whose colour that view's
+GrabCut object model explains better than its background model (``refine.hull_additions``):
+thin parts with no SfM point that other views found.
 Each stage is a function with a typed input and output and its own config dataclass, so
 stages can be swapped by configuration.
 """
@@ -76,7 +80,7 @@ def preset(method: str) -> dict:
                           "splat_scale": 0.6, "hull_consistency": False,
                           "hull_carve": False},
                 "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
-                           "edge_alpha": 0.4, "max_side": 400,
+                           "edge_alpha": 0.4, "max_side": 400, "hull_add": True,
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,
@@ -127,7 +131,8 @@ def _needs_all_masks(cfg: SegmentationConfig) -> bool:
     """Whether a mask of one view depends on the masks of the other views (the voxel-hull
     options, the two-pass consistency seeds): a view subset then needs every view's mask."""
     return bool(cfg.masks.hull_consistency or cfg.masks.hull_carve
-                or (cfg.refine.enabled and cfg.refine.fg_seeds == "consistent"))
+                or (cfg.refine.enabled and (cfg.refine.fg_seeds == "consistent"
+                                            or cfg.refine.hull_add)))
 
 
 def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConfig] = None,
