@@ -491,15 +491,18 @@ class SegmentationNode(Node):
                     self.diag.count("masks_reused", len(views))
                     self.diag.set_state(f"run {self.runs}: no keyframe needed a new mask")
                     return
+            # the final masks of the keyframes this run does not re-mask (what the hull
+            # additions need of them instead of refining them again)
+            ctx = self._context_masks(views, keys) if keys is not None else None
             if worker is not None:
                 result = self._in_worker(worker.segment, views, cloud, self.seg_cfg,
-                                         mask_keys=keys)
+                                         mask_keys=keys, context_masks=ctx)
                 if keys is None:
                     on_cloud(result.ooi_cloud)
             else:
                 result = segment(capture, cloud, self.seg_cfg,
                                  on_cloud=None if keys is not None else on_cloud,
-                                 mask_keys=keys)
+                                 mask_keys=keys, context_masks=ctx)
             self.last_result = result
             self.runs += 1
             self.last_run_newest_ns = max(v.stamp_ns for v in views)
@@ -538,6 +541,15 @@ class SegmentationNode(Node):
             self.throttle.warn("segfail", f"segmentation failed: {type(exc).__name__}: {exc}")
         finally:
             self._busy.release()
+
+    def _context_masks(self, views: list[View], keys: list[str]) -> dict:
+        """{key: final mask} (working size) of the kept keyframes not in ``keys``."""
+        keyset = set(keys)
+        with self._lock:
+            bits = {v.key: self._final_bits.get(v.stamp_ns) for v in views
+                    if v.key not in keyset}
+        return {k: np.unpackbits(b[0], count=int(np.prod(b[1]))).reshape(b[1]).astype(bool)
+                for k, b in bits.items() if b is not None}
 
     def _get_worker(self) -> Optional[SegmentationWorker]:
         """The full runs' worker process (started on first use); None = run in this thread."""

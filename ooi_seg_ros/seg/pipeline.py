@@ -135,9 +135,17 @@ def _needs_all_masks(cfg: SegmentationConfig) -> bool:
                                             or cfg.refine.hull_add)))
 
 
+def _only_hull_add(cfg: SegmentationConfig) -> bool:
+    """Whether the hull additions are the only reason a mask needs the other views' masks."""
+    return bool(cfg.refine.enabled and cfg.refine.hull_add and not (
+        cfg.masks.hull_consistency or cfg.masks.hull_carve
+        or cfg.refine.fg_seeds == "consistent"))
+
+
 def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConfig] = None,
             on_cloud: Optional[Callable[[SfmCloud], None]] = None,
-            mask_keys: Optional[Collection[str]] = None) -> SegmentationResult:
+            mask_keys: Optional[Collection[str]] = None,
+            context_masks: Optional[dict] = None) -> SegmentationResult:
     """Segment the OOI of ``capture`` from ``cloud`` and render a mask for every view.
 
     ``on_cloud`` (optional) is called with the OOI cloud as soon as the point stages are done,
@@ -151,6 +159,13 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
     Options that make one view's mask depend on the others' (voxel hull, consistency seeds)
     render every mask and keep the subset (same masks, no saving). A key not in the capture
     is an input error.
+
+    ``context_masks`` (optional, with ``mask_keys``): {key: mask} of the other views, made
+    earlier. When the hull additions (``refine.hull_add``) are the only option that needs
+    the other views' masks and these cover every other view, they stand in for those views
+    in the hull, and only the ``mask_keys`` views are refined (a live node's incremental
+    runs: its older keyframes' final masks). The masks then differ from a full run's by as
+    much as the older masks differ from what a full run would make of those views now.
     """
     cfg = config or make_config()
     views = capture.views
@@ -168,7 +183,17 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
             raise InputError(f"mask_keys holds {len(unknown)} key(s) not in the capture, e.g. "
                              f"{sorted(unknown)[0]!r}; pass keys of the capture's views")
     # the views whose masks are rendered (all of them when a mask needs the others')
-    mask_views = views if wanted is None or _needs_all_masks(cfg) else [
+    needs_all = wanted is not None and _needs_all_masks(cfg)
+    context: Optional[dict] = None
+    if needs_all and context_masks is not None and _only_hull_add(cfg):
+        # the hull additions need every view's mask: masks of the other views made earlier
+        # (a node's final masks of its older keyframes) stand in for refining them again
+        others = [v for v in views if v.key not in wanted]
+        if all(v.key in context_masks and np.shape(context_masks[v.key])
+               == (v.camera.height, v.camera.width) for v in others):
+            context = {v.key: np.asarray(context_masks[v.key], bool) for v in others}
+            needs_all = False
+    mask_views = views if wanted is None or needs_all else [
         v for v in views if v.key in wanted]
     warnings: list[str] = []
     counts: dict = {"input": int(len(cloud))}
@@ -258,7 +283,7 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
             plane = np.vstack([plane[None], extra])
         try:
             masks, params["refine"] = refine_masks(masks, views, cloud, full.subset(removed),
-                                                   cfg.refine, plane, target)
+                                                   cfg.refine, plane, target, context)
         except ImportError:
             warnings.append("refine: opencv-python-headless is not installed; masks are the "
                             "unrefined point silhouettes")

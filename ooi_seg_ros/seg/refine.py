@@ -398,7 +398,8 @@ def point_support(xyz: np.ndarray, masks: dict[str, np.ndarray], views: list[Vie
 
 def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                  background: SfmCloud, cfg: RefineConfig, plane: Optional[np.ndarray] = None,
-                 target: Optional[np.ndarray] = None) -> tuple[dict, dict]:
+                 target: Optional[np.ndarray] = None, context_masks: Optional[dict] = None
+                 ) -> tuple[dict, dict]:
     """GrabCut-refined masks {key: bool [H,W]} and counts of refined/rejected views.
 
     Only the views with a key in ``masks`` are refined (the result holds just those); the
@@ -414,6 +415,9 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     With ``cfg.plane_check.enabled`` and a support ``plane`` (n.x + d = 0; or [P, 4] planes,
     the support plane first), the pixels that show a plane (``photo.PlaneConsistency``;
     ``target`` = the cameras' convergence point) are sure background.
+
+    ``context_masks`` ({key: mask} of views *not* refined here) join the refined masks in the
+    visual hull of ``hull_add`` (masks made earlier stand in for refining those views again).
     """
     if not 0.0 <= float(cfg.edge_alpha) <= 1.0:
         raise ValueError(f"refine.edge_alpha={cfg.edge_alpha}; it is a coverage in [0, 1]")
@@ -455,7 +459,10 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         raise ValueError(f"refine.fg_seeds={cfg.fg_seeds!r}; use observations, projections "
                          f"or consistent")
     if cfg.hull_add:
-        out, params["hull_add"] = hull_additions(out, views, ooi.xyz, models or {}, cfg)
+        both = {**(context_masks or {}), **out}
+        both, params["hull_add"] = hull_additions(both, views, ooi.xyz, models or {}, cfg)
+        out = {k: both[k] for k in out}
+        params["hull_add"]["context_views"] = len(context_masks or {})
     if cfg.edge_window > 1:
         for v in views:
             if v.key in out:

@@ -44,8 +44,12 @@ def point_stages(capture: Capture, cloud: SfmCloud, cfg: SegmentationConfig) -> 
 
 
 def _segment_job(state: dict, job: tuple):
-    """Worker handler: ("points" | "full", views, cloud, cfg, mask_keys, new_images, alive)."""
-    kind, views, cloud, cfg, mask_keys, new_images, alive = job
+    """Worker handler: ("points" | "full", views, cloud, cfg, mask_keys, new_images, alive,
+    context masks bit-packed {key: (bits, shape)} or None)."""
+    kind, views, cloud, cfg, mask_keys, new_images, alive, ctx_bits = job
+    ctx = None if ctx_bits is None else {
+        k: np.unpackbits(b, count=int(np.prod(shape))).reshape(shape).astype(bool)
+        for k, (b, shape) in ctx_bits.items()}
     cache = state.setdefault("images", {})
     for s in [s for s in cache if s not in alive]:
         del cache[s]
@@ -57,7 +61,7 @@ def _segment_job(state: dict, job: tuple):
         if kind == "points":
             ooi = point_stages(capture, cloud, cfg)
             return np.asarray(ooi.xyz), np.asarray(ooi.rgb)
-        return segment(capture, cloud, cfg, mask_keys=mask_keys)
+        return segment(capture, cloud, cfg, mask_keys=mask_keys, context_masks=ctx)
     finally:
         for v in views:  # the result refers to them: send no pixels back
             v.image = None
@@ -79,7 +83,7 @@ class SegmentationWorker:
         return self._w.pid
 
     def _job(self, kind: str, views: list[View], cloud: SfmCloud, cfg: SegmentationConfig,
-             mask_keys: Optional[Collection[str]]):
+             mask_keys: Optional[Collection[str]], context_masks: Optional[dict] = None):
         light = {id(v): dataclasses.replace(v, image=None, loader=None) for v in views}
         for v in cloud.views:
             if id(v) not in light:
@@ -93,9 +97,12 @@ class SegmentationWorker:
             if self._sent.get(v.stamp_ns) is not img:
                 new[v.stamp_ns] = img
         try:
+            ctx = None if context_masks is None else {
+                k: (np.packbits(np.asarray(m, bool)), np.shape(m))
+                for k, m in context_masks.items()}
             out = self._w.submit((kind, lviews, lcloud, cfg,
                                   None if mask_keys is None else list(mask_keys), new,
-                                  alive)).result()
+                                  alive, ctx)).result()
         except BaseException:
             self._sent.clear()  # unknown what the worker holds now: resend everything
             raise
@@ -110,8 +117,10 @@ class SegmentationWorker:
         return self._job("points", views, cloud, cfg, None)
 
     def segment(self, views: list[View], cloud: SfmCloud, cfg: SegmentationConfig,
-                mask_keys: Optional[Collection[str]] = None) -> SegmentationResult:
-        return self._job("full", views, cloud, cfg, mask_keys)
+                mask_keys: Optional[Collection[str]] = None,
+                context_masks: Optional[dict] = None) -> SegmentationResult:
+        """``segment`` (``mask_keys``, ``context_masks`` as there) in the worker."""
+        return self._job("full", views, cloud, cfg, mask_keys, context_masks)
 
     def close(self, timeout: float = 10.0) -> None:
         self._w.close(timeout)
