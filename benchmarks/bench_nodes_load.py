@@ -118,8 +118,10 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
             gt = capture.views[vi].gt_mask if vi is not None else None
             if gt is not None:
                 pred = msgconv.image_to_mask(m)
+                inter = float((pred & gt).sum())
                 got.setdefault("iou", {}).setdefault(k, []).append(
-                    float((pred & gt).sum() / max((pred | gt).sum(), 1)))
+                    inter / max((pred | gt).sum(), 1))
+                got.setdefault("recall", {}).setdefault(k, []).append(inter / max(gt.sum(), 1))
 
         feeder.create_subscription(Image, "ooi/mask", on_mask, reliable_qos(100))
     else:
@@ -208,10 +210,10 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
                 (got["mask"][k][0] if got["mask"].get(k) else None)
             return t - pub[k] if t is not None and k in pub else None
 
-        def mask_iou(provisional):  # mean IoU of each keyframe's last (non-)provisional mask
-            vals = []
+        def mask_iou(provisional, what="iou"):  # mean IoU (recall) of each keyframe's last
+            vals = []  # (non-)provisional mask
             for k, kinds in got["mask_provisional"].items():
-                ious = got.get("iou", {}).get(k, [])
+                ious = got.get(what, {}).get(k, [])
                 sel = [x for x, p in zip(ious, kinds) if p == provisional]
                 if sel:
                     vals.append(sel[-1])
@@ -246,6 +248,7 @@ def run_case(capture, fps, duration, with_nodes: bool, budget_mb: float = 0.0,
             "masks_provisional_refreshed": segc.get("masks_provisional_refreshed", 0),
             "iou_last_provisional_mask": mask_iou(True),
             "iou_final_mask": mask_iou(False),
+            "recall_final_mask": mask_iou(False, "recall"),
             "masks_final_published": segc.get("masks_published", 0),
             "masks_final_reused": segc.get("masks_reused", 0),
             "keyframes_without_final_mask": sum(
@@ -541,7 +544,8 @@ def main() -> None:
           f"published {res['masks_final_published']}, kept from earlier runs "
           f"{res['masks_final_reused']}, keyframes without a final mask "
           f"{res['keyframes_without_final_mask']}; mask IoU last provisional "
-          f"{res['iou_last_provisional_mask']} / final {res['iou_final_mask']} (mean, count); "
+          f"{res['iou_last_provisional_mask']} / final {res['iou_final_mask']} (mean, count), "
+          f"final recall {res['recall_final_mask']}; "
           f"wall {res['wall_s']} s, process CPU {res['process_cpu_s']} s (worker processes "
           f"{res.get('worker_processes_cpu_s')} CPU-s, RSS last/peak "
           f"{res.get('worker_processes_rss_mb_last_peak')} MB), load average "
