@@ -76,6 +76,7 @@ VARIANTS = {
     # session 7: the session-6 default, before the multi-view hull additions
     "ours-s6": ("ours", {"refine": {"hull_add": False}}),
     "ours+hull-cut": ("ours", {"refine": {"hull_cut": True}}),
+    "ours-hull-specks": ("ours", {"refine": {"hull_connected": False}}),
 }
 
 

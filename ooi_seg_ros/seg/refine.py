@@ -60,6 +60,8 @@ class RefineConfig:
     # (the grid follows the images' resolution: one voxel ~ one pixel's footprint)
     hull_cut: bool = False  # hull_add: also drop the mask pixels whose rays miss that hull (a
     # blob only a minority of the views hold); off: it costs the aircraft's thin tips (recall)
+    hull_connected: bool = True  # hull_add: keep only the added pixels 8-connected to the mask
+    # (through other added pixels): a lone apron speck of the fuselage's grey is not a part
     hull_max_voxels: int = 1_000_000  # hull_add: coarser voxels when the grid would be larger
     # (its cost: one projection of the grid per view; 1M and 4M gave the same masks +-0.001)
     plane_check: PlaneCheckConfig = field(default_factory=PlaneCheckConfig)  # pixels whose
@@ -311,6 +313,8 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
     of that view explains better than its background model. Pixels are only added: a part
     one view missed (no SfM point, GrabCut's smoothness cut it off) is brought back from the
     views that found it; the hull alone is fat around thin parts (the colour test decides).
+    With ``hull_connected`` only the added pixels connected to the mask through other added
+    pixels stay (single specks of an object-like colour in the floor's texture do not).
     Views without colour models (GrabCut not run) are left as they are. ``hull_cut`` also
     removes from those views' masks the pixels whose rays miss the hull.
     """
@@ -373,6 +377,13 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
         if obj.any():
             grown = m.copy()
             grown[cand] = obj
+            if cfg.hull_connected:
+                lab, n = ndimage.label(grown, np.ones((3, 3), bool))
+                hit = np.zeros(n + 1, bool)
+                hit[np.unique(lab[m])] = True
+                hit[0] = False
+                grown = hit[lab]
+                obj = grown[cand]
             out[v.key] = grown
             added += int(obj.sum())
     params["added_px"] = added
