@@ -77,6 +77,7 @@ VARIANTS = {
     "ours-s6": ("ours", {"refine": {"hull_add": False}}),
     "ours+hull-cut": ("ours", {"refine": {"hull_cut": True}}),
     "ours-hull-specks": ("ours", {"refine": {"hull_connected": False}}),
+    "ours+hull-photo": ("ours", {"refine": {"hull_photo": True}}),
 }
 
 

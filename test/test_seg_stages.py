@@ -491,3 +491,12 @@ def test_hull_additions_bring_back_a_part_other_views_hold():
     assert not (got & ~m0).any()  # nothing outside the true silhouette
     for v in views[1:]:  # complete masks gain (almost) nothing
         assert (out[v.key] & ~masks[v.key]).sum() <= 0.02 * masks[v.key].sum()
+    # the photo-consistency option only removes additions; the plain red part the
+    # neighbours repeat at its depth still returns
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    photo = PlaneConsistency(views, np.array([0.0, 0.0, 1.0, 0.0]), np.array([0, 0, 0.5]),
+                             PlaneCheckConfig(max_deg=60.0))
+    out2, _ = hull_additions(masks, views, xyz, models,
+                             RefineConfig(hull_add=True, hull_photo=True), photo)
+    assert not (out2[views[0].key] & ~got).any()
+    assert out2[views[0].key][cut].mean() > 0.8

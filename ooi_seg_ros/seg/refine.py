@@ -62,6 +62,11 @@ class RefineConfig:
     # blob only a minority of the views hold); off: it costs the aircraft's thin tips (recall)
     hull_connected: bool = True  # hull_add: keep only the added pixels 8-connected to the mask
     # (through other added pixels): a lone apron speck of the fuselage's grey is not a part
+    hull_photo: bool = False  # hull_add: an added pixel must also be photo-consistent: at some
+    # depth where its ray crosses the hull, its colour is within plane_check.max_diff of what
+    # at least one of the plane check's neighbour views sees there (background seen through
+    # the hull lands elsewhere in the neighbours)
+    hull_photo_depths: int = 8  # hull_photo: depths sampled across the ray's hull interval
     hull_max_voxels: int = 1_000_000  # hull_add: coarser voxels when the grid would be larger
     # (its cost: one projection of the grid per view; 1M and 4M gave the same masks +-0.001)
     plane_check: PlaneCheckConfig = field(default_factory=PlaneCheckConfig)  # pixels whose
@@ -300,8 +305,44 @@ def gmm_log_likelihood(model: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out
 
 
+def _photo_consistent(photo: PlaneConsistency, i: int, hull_xyz: np.ndarray, vs: float,
+                      ys: np.ndarray, xs: np.ndarray, n_depths: int) -> np.ndarray:
+    """Bool [k]: pixels (ys, xs) of view ``i`` whose colour some neighbour view repeats at a
+    depth inside the hull's interval along their ray (``hull_photo``)."""
+    v = photo.views[i]
+    c = v.camera
+    uv, z = project_distorted(hull_xyz, c, v.pose)
+    ui, vi = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+    ok = (z > 1e-9) & (ui >= 0) & (ui < c.width) & (vi >= 0) & (vi < c.height)
+    zmin = np.full(c.height * c.width, np.inf)
+    zmax = np.full(c.height * c.width, -np.inf)
+    idx = vi[ok] * c.width + ui[ok]
+    np.minimum.at(zmin, idx, z[ok])
+    np.maximum.at(zmax, idx, z[ok])
+    r = int(np.ceil(0.5 * vs * c.fx / max(float(np.median(z[ok])) if ok.any() else 1.0, 1e-9)))
+    size = 2 * max(r, 1) + 1  # voxel centres leave gaps of up to a voxel's footprint
+    zmin = ndimage.grey_erosion(zmin.reshape(c.height, c.width), size=size)[ys, xs]
+    zmax = ndimage.grey_dilation(zmax.reshape(c.height, c.width), size=size)[ys, xs]
+    good = np.isfinite(zmin) & np.isfinite(zmax)
+    out = np.zeros(len(ys), bool)
+    if not good.any() or len(photo.nbrs[i]) == 0:
+        return ~good | out  # no interval / no neighbour: no evidence against the pixel
+    d = photo._rays(i)[ys, xs]  # camera-frame rays, z = 1
+    own = photo._image(i)[ys, xs]
+    tol = float(photo.cfg.max_diff)
+    for k in range(n_depths):
+        zk = zmin + (k + 0.5) / n_depths * (zmax - zmin)
+        X = v.pose.t + (d * np.where(good, zk, 1.0)[:, None]) @ v.pose.R.T
+        for j in photo.nbrs[i]:
+            col, valid = photo.sample(int(j), X, good, (len(ys), 1))
+            diff = np.abs(col.reshape(-1, 3) - own).mean(1)
+            out |= valid.ravel() & (diff < tol)
+    return out | ~good
+
+
 def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndarray,
-                   models: dict, cfg: RefineConfig) -> tuple[dict, dict]:
+                   models: dict, cfg: RefineConfig, photo: Optional[PlaneConsistency] = None
+                   ) -> tuple[dict, dict]:
     """Masks grown by the pixels the other views' masks and this view's colours agree on.
 
     A voxel grid covers the OOI points' box (padded by 15% of its longest side, as the hull
@@ -361,6 +402,8 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
                        [v for v in views if v.key in models], MaskConfig(closing_kernel=1))
     out = dict(masks)
     added = 0
+    hull_xyz = grid[keep]
+    index = {v.key: i for i, v in enumerate(views)}
     for v in views:
         if v.key not in models or v.key not in masks:
             continue
@@ -374,6 +417,11 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
             continue
         col = v.get_image()[cand][:, ::-1].astype(float)  # BGR, as GrabCut saw it
         obj = gmm_log_likelihood(fgd, col) > gmm_log_likelihood(bgd, col)
+        if cfg.hull_photo and photo is not None and obj.any():
+            ys, xs = np.nonzero(cand)
+            sel = np.nonzero(obj)[0]
+            obj[sel] = _photo_consistent(photo, index[v.key], hull_xyz, vs, ys[sel], xs[sel],
+                                         max(1, int(cfg.hull_photo_depths)))
         if obj.any():
             grown = m.copy()
             grown[cand] = obj
@@ -471,7 +519,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                          f"or consistent")
     if cfg.hull_add:
         both = {**(context_masks or {}), **out}
-        both, params["hull_add"] = hull_additions(both, views, ooi.xyz, models or {}, cfg)
+        both, params["hull_add"] = hull_additions(both, views, ooi.xyz, models or {}, cfg,
+                                                  floor)
         out = {k: both[k] for k in out}
         params["hull_add"]["context_views"] = len(context_masks or {})
     if cfg.edge_window > 1:
