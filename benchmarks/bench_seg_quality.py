@@ -46,7 +46,8 @@ VARIANTS = {
                                       "plane_check": {"enabled": False}}}),
     "ours-grow": ("ours", {"noise": {"grow_scale": 2.0}}),
     # one DBSCAN eps of 1.5 spacings (the default until the eps widening, this round)
-    "ours-single-eps": ("ours", {"noise": {"eps_max_scale": 0.0, "merge_reach_scale": 1.0}}),
+    "ours-single-eps": ("ours", {"noise": {"eps_scale": 1.5, "eps_max_scale": 0.0,
+                                           "merge_reach_scale": 1.0}}),
     # eps widening, clusters merged only within the main cluster's own reach (x1.0)
     "ours-reach1": ("ours", {"noise": {"merge_reach_scale": 1.0}}),
     # the default of session 4 (before the behind-the-object test and the outline matting)
@@ -75,6 +76,9 @@ VARIANTS = {
                                                            "object_keep": False}}}),
     # session 7: the session-6 default, before the multi-view hull additions
     "ours-s6": ("ours", {"refine": {"hull_add": False}}),
+    # session 7's point stage: eps widening from 1.5 spacings in steps of 0.5, the extent
+    # at the first eps as the reference (no persistence test)
+    "ours-s7": ("ours", {"noise": {"eps_scale": 1.5, "eps_step": 0.5, "settle_change": 0.0}}),
     "ours+hull-cut": ("ours", {"refine": {"hull_cut": True}}),
     "ours-hull-specks": ("ours", {"refine": {"hull_connected": False}}),
     "ours+hull-photo": ("ours", {"refine": {"hull_photo": True}}),

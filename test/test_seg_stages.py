@@ -500,3 +500,31 @@ def test_hull_additions_bring_back_a_part_other_views_hold():
                              RefineConfig(hull_add=True, hull_photo=True), photo)
     assert not (out2[views[0].key] & ~got).any()
     assert out2[views[0].key][cut].mean() > 0.8
+
+
+
+def test_settled_widening_keeps_parts_that_join_early_and_refuses_a_later_neighbour():
+    """Persistence (``settle_change``): widening from 1 spacing, a core whose two wings join
+    over the first steps (the extent triples: not settled yet, so accepted) is whole and
+    unchanged over a step (settled); the neighbour that joins later moves the extent far out
+    and is refused. Without it, the extent at the first eps is the reference and the wings
+    are cut off (aircraft seed 1 from 1 spacing); from 1.5 spacings a neighbour that already
+    chains in there cannot be refused (toy car seed 1)."""
+    from ooi_seg_ros.seg.density import spacing
+    for seed in (1, 2, 3):
+        core = _sphere(500, r=0.1, c=(0, 0, 0), seed=seed)
+        x1 = 0.2 + 1.1 * spacing(core, 8)  # wings one spacing off the core, same density
+        wings = [_sphere(500, r=0.1, c=(s * x1, 0, 0), seed=seed + 10 * i)
+                 for i, s in ((1, 1), (2, -1))]
+        nb = _sphere(1125, r=0.15, c=(x1 + 0.25 + 2.0 * spacing(core, 8), 0, 0),
+                     seed=seed + 30)
+        xyz = np.vstack([core, *wings, nb])
+        settle = NoiseConfig(select="central", eps_scale=1.0, eps_step=0.25,
+                             eps_max_scale=4.0, settle_change=0.15)
+        first = NoiseConfig(select="central", eps_scale=1.0, eps_step=0.25,
+                            eps_max_scale=4.0)
+        k, p = noise_filter(xyz, settle, np.zeros(3), 0.25)
+        assert (k < 1500).sum() == 1500 and (k >= 1500).sum() == 0
+        assert p["settled_at_scale"] > 1.0 and p["stopped_at_scale"] > p["settled_at_scale"]
+        k2, _ = noise_filter(xyz, first, np.zeros(3), 0.25)
+        assert ((k2 >= 500) & (k2 < 1500)).sum() == 0  # the wings cut off
