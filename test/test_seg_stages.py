@@ -528,3 +528,21 @@ def test_settled_widening_keeps_parts_that_join_early_and_refuses_a_later_neighb
         assert p["settled_at_scale"] > 1.0 and p["stopped_at_scale"] > p["settled_at_scale"]
         k2, _ = noise_filter(xyz, first, np.zeros(3), 0.25)
         assert ((k2 >= 500) & (k2 < 1500)).sum() == 0  # the wings cut off
+
+
+def test_settled_widening_takes_the_other_half_that_centres_the_set():
+    """A sparse object can settle on its half nearest the convergence point (the bicycle of
+    seed 6 at 320x240); the other half then joins with a jump in extent like a neighbour's,
+    but it moves the set's centre towards the point the cameras converge on, so it is
+    accepted as a part (``parts_joined_at``)."""
+    from ooi_seg_ros.seg.density import spacing
+    from ooi_seg_ros.seg.noise import _off_centre
+    cfg = NoiseConfig(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=4.0,
+                      settle_change=0.15)
+    for seed in (1, 2, 3):
+        a = _sphere(500, r=0.1, c=(-0.06, 0, 0), seed=seed)
+        b = _sphere(500, r=0.1, c=(0.14 + 1.8 * spacing(a, 8), 0, 0), seed=seed + 5)
+        xyz = np.vstack([a, b])
+        assert _off_centre(xyz, np.zeros(3)) < _off_centre(a, np.zeros(3))
+        k, p = noise_filter(xyz, cfg, np.zeros(3), 0.1)
+        assert len(k) == 1000 and p["parts_joined_at"][0] > p["settled_at_scale"]

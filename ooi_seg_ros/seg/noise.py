@@ -28,6 +28,11 @@ it -- the object is whole there. A later step that moves the extent past
 the toy car of seed 1 is already chained to the clutter beside it (IoU 0.40), while starting
 at 1 spacing with the first extent as the reference cuts the aircraft's wings off (seed 1:
 its fuselage alone at 1 spacing; the wings join at 1.25).
+A sparse object can settle on the half of it nearest the convergence point (the bicycle of
+seed 6 at 320x240: 61 of its ~130 points); the other half then joins with a jump in extent
+like a neighbour's, but it moves the centre of the set's box towards the point the cameras
+converge on (``_off_centre`` falls), so it is taken as a part and the reference extent
+follows it. A neighbour beside a centred object moves that centre away.
 """
 
 from __future__ import annotations
@@ -82,6 +87,20 @@ def _extent(xyz: np.ndarray, target: np.ndarray) -> float:
     return float(np.quantile(np.linalg.norm(xyz - target, axis=1), 0.98))
 
 
+def _off_centre(xyz: np.ndarray, target: np.ndarray) -> float:
+    """How far ``target`` is from the centre of the points' box, in units of the box's
+    half-diagonal (0 = centred). The box is the 2-98% quantile range along the principal
+    axes, so a sparse tail or the denser half of an object do not move it."""
+    if len(xyz) < 4:
+        return float("inf")
+    mu = xyz.mean(axis=0)
+    _, _, vt = np.linalg.svd(xyz - mu, full_matrices=False)
+    q = (xyz - mu) @ vt.T
+    lo, hi = np.quantile(q, 0.02, axis=0), np.quantile(q, 0.98, axis=0)
+    half = float(np.linalg.norm((hi - lo) / 2))
+    return float(np.linalg.norm(mu + ((lo + hi) / 2) @ vt - target)) / max(half, 1e-12)
+
+
 def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
             ) -> tuple[np.ndarray, dict]:
     """DBSCAN selection, with eps widened while the selection stays compact (see module)."""
@@ -102,15 +121,22 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
             break
         e2 = _extent(xyz[k2], target)
         if e0 is not None and e2 > cfg.max_extent_growth * e0:
-            p["stopped_at_scale"] = round(scale, 3)
-            break
+            if not (settle and _off_centre(xyz[k2], target) < _off_centre(xyz[keep], target)):
+                p["stopped_at_scale"] = round(scale, 3)
+                break
+            # what joined brings the set's centre nearer the point the cameras converge on:
+            # the other half of the object the orbit frames, not a neighbour beside it
+            e0 = e2
+            p2["parts_joined_at"] = p.get("parts_joined_at", []) + [round(scale, 3)]
         if e0 is None and len(np.setxor1d(keep, k2)) < cfg.settle_change * len(keep):
             # the set barely changed over this step: the object is whole from here on, and
             # a later step that moves its extent far out joins a neighbour, not a part
             e0 = e2
             p2["settled_at_scale"] = round(scale, 3)
-        elif e0 is not None and "settled_at_scale" in p:
-            p2["settled_at_scale"] = p["settled_at_scale"]
+        elif e0 is not None:
+            for key in ("settled_at_scale", "parts_joined_at"):
+                if key in p and key not in p2:
+                    p2[key] = p[key]
         keep, p = k2, p2
     p["eps_scales_tried"] = tried
     return keep, p
