@@ -8,6 +8,8 @@ DIR on the bonsai photos (mask outline in green, background dimmed).
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_figure.py --out docs/seg_sim_masks.png
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_figure.py --size 640x360 \
         --scenes aircraft tabletop --out docs/seg_sim_masks_640.png
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_figure.py --scenes toycar \
+        --seeds 1 4 5 6 --out docs/seg_toycar_seeds.png
     .venv/bin/python benchmarks/bench_seg_figure.py --bonsai OUT --out docs/seg_bonsai_masks.png
 """
 
@@ -60,6 +62,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--scenes", nargs="+", default=["aircraft", "tabletop", "bicycle", "toycar"])
     ap.add_argument("--views", type=int, default=60)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0],
+                    help="one row per scene and seed (simulator seed = another capture)")
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--columns", type=int, nargs="+", default=[4, 24, 44])
     ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2")
@@ -71,15 +75,16 @@ def main() -> None:
         return
     w, h = (int(x) for x in args.size.split("x"))
     rows = []
-    for scene in args.scenes:
-        cap, cloud, _ = load_case(scene, 0, args.views, (w, h), "sfm", Path(args.cache))
+    for scene, seed in [(sc, sd) for sc in args.scenes for sd in args.seeds]:
+        cap, cloud, _ = load_case(scene, seed, args.views, (w, h), "sfm", Path(args.cache))
         shown = [cap.views[i] for i in args.columns]
         # every view is context (point stages, plane-check neighbours); only the shown views
         # are masked -- the same masks a full run gives them
-        r = segment(cap, cloud, make_config("ours"), mask_keys=[v.key for v in shown])
+        r = segment(cap, cloud, make_config("ours", {"seed": seed}),
+                    mask_keys=[v.key for v in shown])
         tiles = [colour(v.get_image(), r.masks[v.key], v.gt_mask) for v in shown]
         ious = [r.metrics["per_view"][v.key]["iou"] for v in shown]
-        print(scene, "shown views IoU", " ".join(f"{x:.3f}" for x in ious))
+        print(scene, "seed", seed, "shown views IoU", " ".join(f"{x:.3f}" for x in ious))
         rows.append(np.concatenate(tiles, 1))
     Image.fromarray(np.concatenate(rows, 0)).save(args.out)
     print("wrote", args.out)
