@@ -78,7 +78,8 @@ VARIANTS = {
     "ours-s6": ("ours", {"refine": {"hull_add": False}}),
     # session 7's point stage: eps widening from 1.5 spacings in steps of 0.5, the extent
     # at the first eps as the reference (no persistence test)
-    "ours-s7": ("ours", {"noise": {"eps_scale": 1.5, "eps_step": 0.5, "settle_change": 0.0}}),
+    "ours-s7": ("ours", {"noise": {"eps_scale": 1.5, "eps_step": 0.5, "settle_change": 0.0,
+                                   "max_extent_growth": 1.5}}),
     "ours+hull-cut": ("ours", {"refine": {"hull_cut": True}}),
     "ours-hull-specks": ("ours", {"refine": {"hull_connected": False}}),
     "ours+hull-photo": ("ours", {"refine": {"hull_photo": True}}),
