@@ -502,7 +502,6 @@ def test_hull_additions_bring_back_a_part_other_views_hold():
     assert out2[views[0].key][cut].mean() > 0.8
 
 
-
 def test_settled_widening_keeps_parts_that_join_early_and_refuses_a_later_neighbour():
     """Persistence (``settle_change``): widening from 1 spacing, a core whose two wings join
     over the first steps (the extent triples: not settled yet, so accepted) is whole and
