@@ -83,6 +83,10 @@ VARIANTS = {
     "ours+hull-cut": ("ours", {"refine": {"hull_cut": True}}),
     "ours-hull-specks": ("ours", {"refine": {"hull_connected": False}}),
     "ours+hull-photo": ("ours", {"refine": {"hull_photo": True}}),
+    # session 9: the plane check's neighbours before (4 nearest within 25 deg, 2 must match)
+    "ours-s8": ("ours", {"refine": {"plane_check": {"neighbours": 4, "max_deg": 25.0,
+                                                    "rank": 2}}}),
+    "ours-n8r2": ("ours", {"refine": {"plane_check": {"rank": 2}}}),
 }
 
 

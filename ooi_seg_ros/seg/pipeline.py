@@ -85,7 +85,8 @@ def preset(method: str) -> dict:
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,
-                                           "behind_window": 3}}}
+                                           "behind_window": 3, "neighbours": 8,
+                                           "max_deg": 35.0, "rank": 3}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 
