@@ -9,8 +9,10 @@ background wall (plane-induced photo-consistency with nearby views, ``photo.py``
 background beyond the object (the same test at the depth of the nearest background SfM point
 behind it) is sure background -- next to the object also when only a patch shifted off the
 pixel matches and the pixel's own colour does -- while pixels whose colour the object's depth
-explains and the plane's does not stay object; the refined outline then takes the ring
-pixels whose colour is nearer the object's than the background's (``refine.edge_matte``).
+explains and the plane's does not stay object (over the OOI points' discs, also where they
+reach past the splatted silhouette: ``plane_check.keep_discs``); the refined outline then
+takes the ring pixels whose colour is nearer the object's than the background's
+(``refine.edge_matte``).
 Before that, each view's mask takes the pixels whose rays meet the visual hull of all views'
 refined masks (voxels that a majority of the views hold) and whose colour that view's
 GrabCut object model explains better than its background model (``refine.hull_additions``):
@@ -86,7 +88,8 @@ def preset(method: str) -> dict:
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,
                                            "behind_window": 3, "neighbours": 8,
-                                           "max_deg": 35.0, "rank": 3}}}
+                                           "max_deg": 35.0, "rank": 3,
+                                           "keep_discs": True}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 

@@ -217,11 +217,27 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
             res = ndimage.binary_opening(res, iterations=int(cfg.opening))
         if floor is not None and fl_obj.any():
             # silhouette pixels the object's depth explains and the plane does not (after
-            # the opening, which would take thin stems kept this way with it)
-            keep = fl_obj & crop_s
+            # the opening, which would take thin stems kept this way with it); with
+            # keep_discs all the pixels the test covered (the discs reach past the silhouette)
+            keep = fl_obj if floor.cfg.keep_discs else fl_obj & crop_s
             if keep.shape != res.shape:
                 keep = cv2.resize(keep.astype(np.uint8), (res.shape[1], res.shape[0]),
                                   interpolation=cv2.INTER_NEAREST).astype(bool)
+            if floor.cfg.keep_discs and (keep & ~crop).any():
+                # past the silhouette the colour must also be the object's (GrabCut's
+                # models of this view): clutter right beside the object lies at the object's
+                # depth too, and the depth test alone keeps it (measured: toy car)
+                ext = keep & ~crop
+                col = v.get_image()[box[0]:box[1], box[2]:box[3]][ext][:, ::-1].astype(float)
+                keep[ext] = gmm_log_likelihood(fgd, col) > gmm_log_likelihood(bgd, col)
+            if floor.cfg.keep_discs:
+                # past the silhouette: what joins the object, or regions of at least the
+                # plane check's min_region (no specks on the floor)
+                lab, n = ndimage.label(res | keep, np.ones((3, 3), bool))
+                hit = np.bincount(lab.ravel(), minlength=n + 1) >= floor.cfg.min_region
+                hit[np.unique(lab[res])] = True
+                hit[0] = False
+                keep &= hit[lab] | crop  # inside the silhouette as without keep_discs
             res = res | keep
         res = fill_small_holes(res, cfg.hole_max_fraction)
         a0, a1 = ref_area, res.sum()
