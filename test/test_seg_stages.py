@@ -545,3 +545,25 @@ def test_settled_widening_takes_the_other_half_that_centres_the_set():
         assert _off_centre(xyz, np.zeros(3)) < _off_centre(a, np.zeros(3))
         k, p = noise_filter(xyz, cfg, np.zeros(3), 0.1)
         assert len(k) == 1000 and p["parts_joined_at"][0] > p["settled_at_scale"]
+
+
+def test_chroma_vote_keeps_a_shaded_object_colour_not_a_neighbours_hue():
+    """The keep_discs gate: a pixel of the object's hue in shadow votes object, a pixel of
+    the background's hue does not, whatever their brightness."""
+    from ooi_seg_ros.seg.refine import chroma_vote
+    rng = np.random.default_rng(0)
+    img = np.zeros((40, 40, 3), np.float32)
+    img[:, :20] = (200, 170, 40)  # a yellow object, lit
+    img[:, 20:] = (60, 70, 150)  # a blue neighbour (the clutter beside it)
+    img += rng.normal(0, 4, img.shape)
+    obj = np.zeros((40, 40), bool)
+    obj[:, :18] = True
+    bg = np.zeros((40, 40), bool)
+    bg[:, 22:] = True
+    img[5, 18] = (60, 51, 12)  # the object's hue at 30% brightness (its shaded side)
+    img[5, 21] = (120, 140, 250)  # the neighbour's hue, brighter
+    test = np.zeros((40, 40), bool)
+    test[5, 18] = test[5, 21] = True
+    assert chroma_vote(np.clip(img, 0, 255).astype(np.uint8), obj, bg, test, 0).tolist() == [
+        True, False]
+    assert not chroma_vote(img, obj, np.zeros_like(bg), test, 0).any()  # no background side

@@ -94,8 +94,9 @@ class PlaneCheckConfig:
     keep_discs: bool = False  # object_keep: keep the object pixels over the whole of the discs
     # the test sampled (one 4-NN spacing + 1 px), not only those inside the splatted mask
     # (discs of ``masks.splat_scale`` spacings): an object edge just past the last SfM point
-    # (a featureless belly) is kept on the same multi-view evidence when GrabCut's colour
-    # models of the view also call it object and it joins the mask (or is >= min_region px)
+    # (a featureless belly) is kept on the same multi-view evidence when its chromaticity
+    # also votes object (k-NN against the view's object and background pixels; blind to
+    # shading) and it joins the mask (or is >= min_region px)
     behind_window: int = 0  # behind: side (px) of its compared patches; 0 = ``window``
     # (background seen between leaves or spokes is often narrower than the planes' patch, and
     # a patch that straddles the object never matches)

@@ -224,12 +224,14 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
                 keep = cv2.resize(keep.astype(np.uint8), (res.shape[1], res.shape[0]),
                                   interpolation=cv2.INTER_NEAREST).astype(bool)
             if floor.cfg.keep_discs and (keep & ~crop).any():
-                # past the silhouette the colour must also be the object's (GrabCut's
-                # models of this view): clutter right beside the object lies at the object's
-                # depth too, and the depth test alone keeps it (measured: toy car)
+                # past the silhouette the hue must also be the object's: clutter right beside
+                # the object lies at the object's depth too, and the depth test alone keeps it
+                # (measured: toy car); chromaticity, not GrabCut's RGB models, because the
+                # object's own continuation past its last SfM point is often its shaded side
+                # (measured: the aircraft's belly, which the RGB models give the apron)
                 ext = keep & ~crop
-                col = v.get_image()[box[0]:box[1], box[2]:box[3]][ext][:, ::-1].astype(float)
-                keep[ext] = gmm_log_likelihood(fgd, col) > gmm_log_likelihood(bgd, col)
+                keep[ext] = chroma_vote(v.get_image()[box[0]:box[1], box[2]:box[3]], res,
+                                        ~(res | keep), ext, j)
             if floor.cfg.keep_discs:
                 # past the silhouette: what joins the object, or regions of at least the
                 # plane check's min_region (no specks on the floor)
@@ -250,6 +252,26 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         out[v.key] = full
         refined += 1
     return out, refined, rejected
+
+
+def chroma_vote(img: np.ndarray, obj: np.ndarray, bg: np.ndarray, test: np.ndarray,
+                seed: int, n: int = 3000, k: int = 7) -> np.ndarray:
+    """Bool [m] for the ``test`` pixels of ``img`` (row-major order): whether most of their
+    ``k`` nearest neighbours in chromaticity ((r, g) / (r + g + b), blind to shading) among
+    up to ``n`` sampled ``obj`` pixels and ``n`` sampled ``bg`` pixels are object pixels
+    (a k-NN vote; the samples are drawn with ``seed``). All False when a side is empty."""
+    from scipy.spatial import cKDTree
+    im = img.astype(np.float32)
+    ch = im[..., :2] / np.maximum(im.sum(-1, keepdims=True), 1.0)
+    rng = np.random.default_rng(seed)
+    fo, fb = ch[obj], ch[bg]
+    if len(fo) == 0 or len(fb) == 0:
+        return np.zeros(int(test.sum()), bool)
+    fo = fo[rng.choice(len(fo), min(n, len(fo)), replace=False)]
+    fb = fb[rng.choice(len(fb), min(n, len(fb)), replace=False)]
+    lab = np.r_[np.ones(len(fo)), np.zeros(len(fb))]
+    _, idx = cKDTree(np.vstack([fo, fb])).query(ch[test], k=k)
+    return lab[idx].mean(axis=1) > 0.5
 
 
 def edge_matte(img: np.ndarray, mask: np.ndarray, window: int, alpha: float = 0.5
