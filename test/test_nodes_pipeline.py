@@ -163,12 +163,15 @@ def test_nodes_on_demo_bag(tmp_path, capsys):
 
         iou, iou_min, n, rec = mean_iou(final)
         p_iou, p_min, p_n, _ = mean_iou(prov)
-        bar = float(os.environ.get("OOI_IT_IOU", 0.70))
+        # the segmentation issue's bar (IoU >= 0.90, recall >= 0.97), on the real SfM cloud
+        # the nodes built: measured 0.913 / 0.978 (BENCHMARKS, session 10)
+        bar = float(os.environ.get("OOI_IT_IOU", 0.90))
+        bar_recall = float(os.environ.get("OOI_IT_RECALL", 0.97))
         with capsys.disabled():  # the measured figure belongs in the test output, pass or fail
             print(f"\n[nodes pipeline] mean mask IoU {iou:.3f} (min {iou_min:.3f}), recall "
-                  f"{rec:.3f} over {n} keyframes; bar {bar:.2f}. Latest provisional masks "
-                  f"before the run: {p_iou:.3f} (min {p_min:.3f}) over {p_n}")
-        assert iou >= bar, f"mean IoU {iou:.3f}"
+                  f"{rec:.3f} over {n} keyframes; bar {bar:.2f} / {bar_recall:.2f}. Latest "
+                  f"provisional masks before the run: {p_iou:.3f} (min {p_min:.3f}) over {p_n}")
+        assert iou >= bar and rec >= bar_recall, f"mean IoU {iou:.3f}, recall {rec:.3f}"
 
         # training on the ~/train service
         assert _wait(lambda: len(trn.masks) >= n_kf and trn.ooi_xyz is not None, 60)

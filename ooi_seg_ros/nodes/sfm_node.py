@@ -393,6 +393,12 @@ class SfmNode(Node):
                     self.diag.counters[f"skipped_{reason}"] = n
                 continue
             self._publish_keyframe(view, msg)
+            if self.selector.scene_scale and not self.sfm.scene_scale:
+                # the SfM's depth guess (which earlier keyframes to match) from the scene
+                # scale as soon as the selector has it, as ``ooi-seg run`` does with the
+                # whole orbit's: the convergence point of the first few keyframes is a poor
+                # guess (measured: a different cloud, masks IoU 0.906 vs 0.913 on the demo bag)
+                self.sfm.scene_scale = self.selector.scene_scale
             try:
                 self.work.put_nowait(view)
             except queue.Full:
