@@ -60,14 +60,17 @@ def load(path: Path) -> Capture:
     return Capture(views, source=str(path), gt_ooi_points=d["ooi"])
 
 
-def score(model, capture: Capture, keys: list[str]) -> tuple[float, float]:
+def score(model, capture: Capture, keys: list[str], lowpass: float) -> tuple[float, float]:
+    """Held-out PSNR / SSIM in the true mask, rendered by the CPU rasteriser with the low-pass
+    the model was trained with (rendering a model at another one blurs or sharpens it)."""
     ps, ss = [], []
     views = {v.key: v for v in capture.views}
     m = model.to("cpu")
     with torch.no_grad():
         for k in keys:
             v = views[k]
-            img = cpu_render(m, RasterCamera.from_view(v.camera, v.pose), torch.zeros(3)).image
+            cam = RasterCamera.from_view(v.camera, v.pose, lowpass=lowpass)
+            img = cpu_render(m, cam, torch.zeros(3)).image
             msk = torch.from_numpy(v.gt_mask)
             gt = torch.from_numpy(v.image.astype(np.float32) / 255.0) * msk[..., None]
             ps.append(masked_psnr(img, gt, msk))
@@ -109,7 +112,7 @@ def run(data: Path, budget: float, cap_n: int, cpu_steps: int, out: Path | None,
                               sh_degree_interval=max(300, iters // 10),
                               refine_every=100)
             r = train(cap, None if cfg.full_image else masks, pts, cfg)
-            p, s = score(r.model, cap, r.heldout_keys)
+            p, s = score(r.model, cap, r.heldout_keys, cfg.lowpass)
             own = r.metrics()
             rows.append({"scene": path.stem, "backend": "gsplat", "mode": mode, "steps":
                          r.iterations_done, "its_per_s": r.its_per_s, "n": len(r.model),
