@@ -259,3 +259,35 @@ def test_lowpass_reaches_training_and_heldout_cameras(sim):
                      torch.zeros(3)).image.clamp(0, 1)
     assert np.abs((img.numpy() * 255 + 0.5).astype(np.uint8).astype(int)
                   - r.heldout[0].render.astype(int)).max() <= 1
+
+
+def test_edge_background_is_the_local_background_on_the_outline(sim):
+    """The outline option: ring = mask pixels touching background; its colour = the mean of the
+    pixels >= 2 px outside the mask nearby (the mixed pixel just outside is not used); the
+    training targets carry the ring cropped with the image, and training runs with it."""
+    from ooi_seg_ros.train.raster_common import RasterCamera
+    from ooi_seg_ros.train.trainer import _Frame, _levels, edge_background
+
+    img = torch.zeros(12, 12, 3)
+    img[..., 1] = 1.0  # green background
+    mask = torch.zeros(12, 12, dtype=torch.bool)
+    mask[4:8, 4:8] = True
+    img[4:8, 4:8] = torch.tensor([1.0, 0.0, 0.0])
+    img[3, 4:8] = torch.tensor([0.5, 0.5, 0.0])  # a mixed pixel just outside the mask
+    edge, bg = edge_background(img, mask)
+    ring = mask.clone()
+    ring[5:7, 5:7] = False
+    assert torch.equal(edge, ring)
+    assert torch.allclose(bg[edge], torch.tensor([0.0, 1.0, 0.0]).expand(12, 3))
+    assert float(bg[~edge].abs().max()) == 0.0
+    v = sim.views[3]
+    frame = _Frame(v.key, RasterCamera.from_view(v.camera, v.pose),
+                   torch.from_numpy(v.image.astype(np.float32) / 255),
+                   torch.from_numpy(v.gt_mask))
+    for tg in _levels(frame, TrainConfig(edge_background=True, coarse_frac=0.5)):
+        assert tg.edge.shape == tg.mask.shape and bool(tg.edge.any())
+        assert not bool((tg.edge & ~tg.mask).any())
+    assert _levels(frame, TrainConfig())[0].edge is None
+    masks = {v.key: v.gt_mask for v in sim.views}
+    r = train(sim, masks, sim.gt_ooi_points[::40], _cfg(edge_background=True))
+    assert r.history[-1]["loss"] < r.history[0]["loss"] and np.isfinite(r.heldout[0].psnr)

@@ -84,6 +84,11 @@ class TrainConfig:
     # PLY viewers render with 0.3 (slightly softer)
     coarse_frac: float = 0.0  # train on 2x2-averaged views (a quarter of the pixels) for this
     # fraction of the schedule, then at full resolution
+    edge_background: bool = False  # on the mask's inner ring (mask pixels next to background),
+    # composite the render over the photo's own local background (mean of the pixels 2-3 px
+    # outside the mask) instead of the step's random colour: an outline pixel of the photo
+    # mixes the object with what lies behind it, and this lets the splats explain that pixel
+    # with partial coverage rather than with a background-tinted colour
 
 
 @dataclass
@@ -181,6 +186,8 @@ class _Target:
     cam: RasterCamera
     image: torch.Tensor  # [h, w, 3] float in [0, 1]
     mask: torch.Tensor  # [h, w] bool
+    edge: Optional[torch.Tensor] = None  # [h, w] bool: outline pixels with a local background
+    edge_bg: Optional[torch.Tensor] = None  # [h, w, 3] that background (zero off ``edge``)
 
 
 @dataclass
@@ -206,23 +213,52 @@ def _half_camera(cam: RasterCamera) -> RasterCamera:
                         (cam.cy - 0.5) / 2, cam.width // 2, cam.height // 2, cam.lowpass)
 
 
+def edge_background(image: torch.Tensor, mask: torch.Tensor, reach: int = 3
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The mask's inner ring and the photo's local background colour there.
+
+    Ring: mask pixels with a non-mask 8-neighbour. Background: the mean colour of the pixels
+    at least 2 px outside the mask (the pixel just outside is itself a mix) within the
+    ``(2 reach + 1)``-square window around the ring pixel. Returns ``edge`` [h, w] bool (ring
+    pixels that have such background) and ``edge_bg`` [h, w, 3] (zero off ``edge``).
+    """
+    m = mask.to(image.dtype)[None, None]
+    near = torch.nn.functional.max_pool2d(m, 3, 1, 1)[0, 0] > 0
+    ring = mask & (torch.nn.functional.max_pool2d(1.0 - m, 3, 1, 1)[0, 0] > 0)
+    far = (~near).to(image.dtype)
+    win = 2 * reach + 1
+
+    def box_sum(x: torch.Tensor) -> torch.Tensor:  # [h, w, c] -> window sums
+        y = torch.nn.functional.avg_pool2d(x.permute(2, 0, 1)[None], win, 1, reach,
+                                           count_include_pad=True)
+        return y[0].permute(1, 2, 0) * (win * win)
+
+    cnt = box_sum(far[..., None])[..., 0]
+    edge = ring & (cnt > 0.5)
+    bg = box_sum(image * far[..., None]) / cnt.clamp_min(1.0)[..., None]
+    return edge, bg * edge[..., None].to(image.dtype)
+
+
 def _target(cam: RasterCamera, image: torch.Tensor, mask: torch.Tensor,
-            crop: bool) -> _Target:
+            crop: bool, edges: bool = False) -> _Target:
     """A training target, cut to the mask's bounding box grown by the SSIM window's half size
     when ``crop`` (the loss sees no pixel outside that box; ``photometric_loss`` crops the
-    same box)."""
+    same box); with ``edges``, the outline's local background (``edge_background``)."""
+    edge, edge_bg = edge_background(image, mask) if edges else (None, None)
     if not crop:
-        return _Target(cam, image, mask)
+        return _Target(cam, image, mask, edge, edge_bg)
     rows, cols = mask_crop(mask, SSIM_SIZE // 2)
+    cut = (lambda t: None if t is None else t[rows, cols].contiguous())
     return _Target(_crop_camera(cam, rows, cols), image[rows, cols].contiguous(),
-                   mask[rows, cols].contiguous())
+                   mask[rows, cols].contiguous(), cut(edge), cut(edge_bg))
 
 
 def _levels(f: _Frame, cfg: TrainConfig) -> list[_Target]:
     """Full-size and half-size training targets of a frame (the half-size mask keeps pixels
     at least half covered by the full-size mask)."""
     crop = cfg.crop_to_mask and not cfg.full_image
-    out = [_target(f.cam, f.image, f.mask, crop)]
+    edges = cfg.edge_background and not cfg.full_image
+    out = [_target(f.cam, f.image, f.mask, crop, edges)]
     if cfg.coarse_frac > 0:
         h2, w2 = f.cam.height // 2, f.cam.width // 2
         img = f.image[:2 * h2, :2 * w2].reshape(h2, 2, w2, 2, 3).mean((1, 3))
@@ -230,7 +266,7 @@ def _levels(f: _Frame, cfg: TrainConfig) -> list[_Target]:
         mask = cover >= 0.5
         if not bool(mask.any()):
             mask = cover > 0
-        out.append(_target(_half_camera(f.cam), img, mask, crop))
+        out.append(_target(_half_camera(f.cam), img, mask, crop, edges))
     return out
 
 
@@ -502,6 +538,8 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
             bg = torch.rand(3, generator=gen)
         out = render(model, tg.cam, bg)
         image = out.image if expo is None else _apply_exposure(out.image, out.alpha, bg, expo, fi)
+        if tg.edge is not None:  # the outline over the photo's own background there
+            image = image + (1.0 - out.alpha)[..., None] * (tg.edge_bg - bg) * tg.edge[..., None]
         if cfg.full_image:
             gt, mask = tg.image, None
         else:
