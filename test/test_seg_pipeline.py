@@ -159,6 +159,27 @@ def test_cloud_change():
     assert cloud_change(np.zeros((0, 3)), a)["changed"] == 1.0
 
 
+def test_pixel_votes_only_remove_pixels_from_the_mask(aircraft):
+    """``plane_check.pixel_votes`` only takes pixels out of GrabCut's result (those the
+    per-pixel plane votes call floor and whose chromaticity votes ground); its quality is
+    measured on the SfM clouds in benchmarks/bench_seg_quality.py (BENCHMARKS.md, session
+    11)."""
+    sim, cloud = aircraft
+    pc = {"max_deg": 65.0, "rank": 2}
+    base = {"refine": {"hull_add": False, "edge_window": 0,
+                       "plane_check": dict(pc, pixel_votes=False)}}
+    without = segment(sim.capture, cloud, make_config("ours", base))
+    on = {"refine": dict(base["refine"], plane_check=dict(pc, pixel_votes=True))}
+    with_votes = segment(sim.capture, cloud, make_config("ours", on))
+    removed = 0
+    for v in sim.capture.views:
+        a, b = with_votes.masks[v.key], without.masks[v.key]
+        assert not (a & ~b).any()  # nothing added
+        removed += int((b & ~a).sum())
+    assert removed > 0
+    assert with_votes.metrics["mean"]["recall"] >= without.metrics["mean"]["recall"] - 0.01
+
+
 def test_keep_discs_only_adds_pixels_that_join_the_mask(aircraft):
     """``plane_check.keep_discs`` (the ``ours`` default) only adds pixels to GrabCut's result:
     those the object's depth explains in the neighbours and the support plane does not, over

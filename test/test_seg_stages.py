@@ -567,3 +567,30 @@ def test_chroma_vote_keeps_a_shaded_object_colour_not_a_neighbours_hue():
     assert chroma_vote(np.clip(img, 0, 255).astype(np.uint8), obj, bg, test, 0).tolist() == [
         True, False]
     assert not chroma_vote(img, obj, np.zeros_like(bg), test, 0).any()  # no background side
+
+
+def test_pixel_floor_leaves_the_mask_only_where_colour_says_ground():
+    """plane_check.pixel_votes: of the pixels the per-pixel plane votes call floor, those
+    inside the mask with the ground's hue leave it (grass seen through a wheel); those with
+    the object's hue stay, and so do the sure-object seeds."""
+    from ooi_seg_ros.seg.refine import _drop_pixel_floor
+    rng = np.random.default_rng(1)
+    img = np.zeros((40, 40, 3), np.float32)
+    img[:] = (60, 140, 50)  # grass
+    img[10:30, 10:30] = (180, 30, 30)  # a red frame ...
+    img[15:25, 15:25] = (60, 140, 50)  # ... with grass seen through it
+    img = np.clip(img + rng.normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    res = np.zeros((40, 40), bool)
+    res[10:30, 10:30] = True  # the mask holds the see-through grass
+    ground = ~res  # the plane check's floor outside the mask
+    pixel = np.zeros((40, 40), bool)
+    pixel[15:25, 15:25] = True  # per-pixel floor votes: the grass ...
+    pixel[10:12, 10:30] = True  # ... and (wrongly) a strip of the frame
+    sure = np.zeros((40, 40), bool)
+    sure[20, 20] = True  # an OOI point projects here
+    out = _drop_pixel_floor(res, pixel, ground, img, 0, sure)
+    assert not out[15:25, 15:25][~sure[15:25, 15:25]].any()  # the grass left
+    assert out[20, 20]  # the seed stayed
+    assert out[10:12, 10:30].all() and out[12:30, 10:15].all()  # the frame stayed
+    assert not (out & ~res).any()  # only removes
+    assert _drop_pixel_floor(res, None, ground, img, 0, sure) is res

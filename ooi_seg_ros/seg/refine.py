@@ -242,6 +242,10 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
                 keep &= hit[lab] | crop  # inside the silhouette as without keep_discs
             res = res | keep
         res = fill_small_holes(res, cfg.hole_max_fraction)
+        if floor is not None and floor.cfg.pixel_votes:
+            res = _drop_pixel_floor(res, floor.pixel_floor.get((j, tuple(box))), fl_full,
+                                    v.get_image()[box[0]:box[1], box[2]:box[3]], j,
+                                    fg_seed & ~bg_seed)
         a0, a1 = ref_area, res.sum()
         if abs(a1 - a0) > cfg.max_area_change * a0:
             rejected += 1
@@ -252,6 +256,29 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         out[v.key] = full
         refined += 1
     return out, refined, rejected
+
+
+def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.ndarray,
+                      img: np.ndarray, seed: int, sure: np.ndarray) -> np.ndarray:
+    """``res`` without the pixels the per-pixel plane votes call floor (``pixel_votes``)
+    whose chromaticity also votes ground: k-NN against the rest of ``res`` and the floor the
+    plane check found outside it (the crop's background when that is under 50 px). The
+    sure-object seeds (``sure``, where OOI points project) stay."""
+    if pixel is None or not pixel.any():
+        return res
+    if pixel.shape != res.shape:
+        import cv2
+        pixel = cv2.resize(pixel.astype(np.uint8), (res.shape[1], res.shape[0]),
+                           interpolation=cv2.INTER_NEAREST).astype(bool)
+        sure = cv2.resize(sure.astype(np.uint8), (res.shape[1], res.shape[0]),
+                          interpolation=cv2.INTER_NEAREST).astype(bool)
+    cand = pixel & res & ~sure
+    if not cand.any():
+        return res
+    bg = (ground | pixel) & ~res
+    out = res.copy()
+    out[cand] = chroma_vote(img, res & ~cand, bg if bg.sum() >= 50 else ~res, cand, seed)
+    return out
 
 
 def chroma_vote(img: np.ndarray, obj: np.ndarray, bg: np.ndarray, test: np.ndarray,
