@@ -153,6 +153,34 @@ def test_pipelined_extraction_gives_the_serial_cloud_bit_for_bit(sim, built):
         os.kill(worker_pid, 0)
 
 
+def test_cloud_asked_for_while_keyframes_are_added_loses_no_track(sim, built):
+    """A live node adds keyframes in one thread while a service asks for the cloud in
+    another; the cloud in the end is the serial one (it lost tracks before the SfM's lock)."""
+    import threading
+
+    serial, _, full = built
+    sfm = IncrementalSfM(IncrementalConfig())
+    feats = [sfm.extract(v) for v in sim.capture.views]  # the adding thread only matches
+    done = threading.Event()
+    asked = []
+
+    def ask():
+        while not done.is_set():
+            asked.append(len(sfm.cloud()))
+
+    t = threading.Thread(target=ask)
+    t.start()
+    try:
+        for v, f in zip(sim.capture.views, feats):
+            sfm.add_keyframe(v, f)
+    finally:
+        done.set()
+        t.join()
+    assert len(asked) > N_VIEWS  # the two really overlapped
+    assert _same_cloud(sfm.cloud(), full)
+    assert _same_cloud(sfm.cloud(conditioned=False), serial.cloud(conditioned=False))
+
+
 def test_pipeline_bounds_keyframes_in_flight_and_survives_its_worker(sim, built):
     views = sim.capture.views[:6]
     serial = IncrementalSfM()
