@@ -86,6 +86,42 @@ def _kf(assembler, stamp, pose, size=(48, 64)):
     return assembler.add(stamp, "image", rgb)
 
 
+def test_diagnostics_publish_while_counters_appear_in_another_thread(ctx):
+    """The diagnostics timer iterates the counters while worker threads add new keys (the
+    SfM node's skipped_<reason>, now through ``set_count`` under the lock). A smoke test:
+    the unlocked writes it replaced did not fail it either (the window is a few bytecodes),
+    the fix rests on every write taking the lock."""
+    import threading
+
+    node = Node("diag", context=ctx, namespace=_ns())
+    try:
+        diag = Diagnostics(node, period_s=3600.0)
+        stop = threading.Event()
+
+        def add():
+            for i in range(300):
+                if stop.is_set():
+                    return
+                diag.set_count(f"skipped_{i}", i)
+                diag.count(f"dropped_{i}")
+                time.sleep(0.0005)
+
+        t = threading.Thread(target=add)
+        t.start()
+        published = 0
+        try:
+            while t.is_alive():
+                diag.publish()
+                published += 1
+        finally:
+            stop.set()
+            t.join()
+        snap = diag.snapshot()["counters"]
+        assert published > 10 and len(snap) == 600 and snap["skipped_299"] == 299
+    finally:
+        node.destroy_node()
+
+
 def test_keyframe_memory_is_bounded_in_bytes(ctx):
     node = Node("asm", context=ctx, namespace=_ns())
     try:
@@ -255,6 +291,60 @@ def test_segmentation_node_keeps_downscaled_keyframes_within_budget(ctx):
         assert len(node.keyframes) == 3
         assert node.diag.counters["dropped_keyframe_budget"] == 3
         assert all(v.image.shape == (60, 80, 3) for v in node.keyframes.values())
+    finally:
+        node.destroy_node()
+
+
+def test_segmentation_run_takes_the_observations_of_its_own_cloud(ctx, monkeypatch):
+    """Observations index the points of their own SfM cloud: a run started by a points
+    message waits for the observations with its stamp, and without them (late or another
+    cloud's) goes on without observations, counted -- never with the wrong cloud's."""
+    import threading
+
+    from ooi_seg_ros.core.types import SfmCloud, View
+    from ooi_seg_ros.nodes import segmentation_node as segmod
+
+    monkeypatch.setattr(segmod, "OBS_WAIT_S", 0.5)
+    node = SegmentationNode(context=ctx, namespace=_ns(), parameter_overrides=[
+        Parameter("every_n_keyframes", value=0)])
+    try:
+        cam = CameraIntrinsics(160, 120, 120.0, 120.0, 79.5, 59.5)
+        views = []
+        for k in range(3):
+            stamp = 10 ** 9 + k * 10 ** 8
+            pose = _orbit_pose(k, 12)
+            node.on_kf_info(msgconv.intrinsics_to_camera_info(cam, stamp))
+            node.on_kf_pose(msgconv.pose_to_pose_stamped(pose, stamp, "map"))
+            node.on_kf_image(msgconv.rgb_to_image(np.zeros((120, 160, 3), np.uint8), stamp))
+            views.append(View(key=str(stamp), stamp_ns=stamp, camera=cam, pose=pose))
+        assert len(node.keyframes) == 3
+
+        def cloud_msgs(n, stamp_ns):  # n points, each seen by keyframes 0 and 1
+            c = SfmCloud(np.random.default_rng(n).normal(size=(n, 3)),
+                         np.full((n, 3), 100, np.uint8), np.zeros(n),
+                         np.arange(0, 2 * n + 1, 2, dtype=np.int64),
+                         np.tile(np.array([0, 1], np.int32), n),
+                         np.full((2 * n, 2), 10.0, np.float32), views)
+            st = msgconv.ns_to_stamp(stamp_ns)
+            return msgconv.xyzrgb_to_pointcloud2(c.xyz, c.rgb, st), \
+                msgconv.observations_to_pointcloud2(c, st)
+
+        # no observations ever received: no wait, none used
+        pts, obs = cloud_msgs(5, 10 ** 9)
+        node.on_points(pts)
+        assert node._inputs()[2].obs_ptr[-1] == 0
+        # the previous cloud's observations only: wait, then none used and counted
+        node.on_obs(obs)
+        pts2, obs2 = cloud_msgs(8, 2 * 10 ** 9)
+        node.on_points(pts2)
+        cloud = node._inputs()[2]
+        assert len(cloud) == 8 and cloud.obs_ptr[-1] == 0
+        assert node.diag.counters["cloud_without_observations"] == 1
+        # its own observations arriving while the run waits: used
+        threading.Timer(0.1, node.on_obs, args=(obs2,)).start()
+        cloud = node._inputs()[2]
+        assert cloud.obs_ptr[-1] == 16 and np.all(cloud.track_lengths() == 2)
+        assert node.diag.counters["cloud_without_observations"] == 1
     finally:
         node.destroy_node()
 

@@ -188,6 +188,12 @@ class Diagnostics:
         with self._lock:
             self.counters[key] = self.counters.get(key, 0) + n
 
+    def set_count(self, key: str, n: int) -> None:
+        """Sets a counter kept elsewhere (e.g. the keyframe selector's drops) under the lock:
+        a key added while ``publish`` iterates the counters would raise in the timer."""
+        with self._lock:
+            self.counters[key] = int(n)
+
     def timing(self, key: str, seconds: float) -> None:
         with self._lock:
             self.timings[key] = seconds
@@ -212,7 +218,7 @@ class Diagnostics:
                    for k, v in sorted(self.timings.items())]
             kv += [KeyValue(key=k, value=v) for k, v in sorted(self.values.items())]
             level = self.level
-            bad = any(k.startswith(("dropped", "error")) for k, v in self.counters.items() if v)
+            bad = any(k.startswith(("dropped", "error")) and v for k, v in self.counters.items())
             if level == DiagnosticStatus.OK and bad:
                 level = DiagnosticStatus.WARN
             st = DiagnosticStatus(level=level, name=self.node.get_fully_qualified_name(),

@@ -251,6 +251,7 @@ class _OoiCloud:
     source: str  # "run N" (point stages of full run N) or "cloud-only"
 
 
+OBS_WAIT_S = 2.0  # s a run waits for the observations published with its SfM cloud
 LIVE_REFINE_MAX_SIDE = 256  # px, without the worker process; see SegmentationNode.__init__
 
 
@@ -282,6 +283,8 @@ class SegmentationNode(Node):
         self.diag = Diagnostics(self)
         self.throttle = Throttle(self)
         self._lock = threading.Lock()
+        self._obs_arrived = threading.Condition(self._lock)  # on_obs -> a run waiting for it
+        self._cloud_pub_lock = threading.Lock()  # ooi/points: newest-wins check + publish
         budget = (int(self.cfg.image_budget_mb * 2 ** 20) if self.cfg.image_budget_mb > 0
                   else auto_image_budget_bytes())
         self.assembler = KeyframeAssembler(
@@ -376,7 +379,37 @@ class SegmentationNode(Node):
 
     @guarded("dropped_cloud")
     def on_obs(self, msg: PointCloud2) -> None:
-        self._obs_msg = msg
+        with self._lock:
+            self._obs_msg = msg
+            self._obs_arrived.notify_all()
+
+    def _observations_for(self, points: PointCloud2) -> Optional[PointCloud2]:
+        """The observations message published with ``points`` (same header stamp).
+
+        The SfM node publishes the points, then their observations; a run started by the
+        points message waits up to ``OBS_WAIT_S`` for the pair. Observations index the points
+        of their own cloud, so another cloud's would attach to the wrong points: without the
+        pair the run goes on without observations (counted as ``cloud_without_observations``).
+        No wait when no observations were ever received (a source publishing points only).
+        """
+        want = points.header.stamp
+        deadline = time.monotonic() + OBS_WAIT_S
+        with self._lock:
+            while True:
+                obs = self._obs_msg
+                if obs is None:
+                    return None
+                if obs.header.stamp == want:
+                    return obs
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._obs_arrived.wait(left)
+        self.diag.count("cloud_without_observations")
+        self.throttle.warn("obs", "segment: no observations with the SfM cloud's stamp "
+                                  f"{msgconv.stamp_to_ns(want)} within {OBS_WAIT_S:g} s: "
+                                  "running without per-point visibility")
+        return None
 
     # ---- running the pipeline -------------------------------------------------------------
     def _maybe_run(self) -> None:
@@ -420,8 +453,8 @@ class SegmentationNode(Node):
             points, seq = self._points_msg, self._points_seq
         if points is None or len(views) < 2:
             return None
-        cloud = msgconv.pointcloud2_to_sfm_cloud(points, self._obs_msg if observations else None,
-                                                 views)
+        obs = self._observations_for(points) if observations else None
+        cloud = msgconv.pointcloud2_to_sfm_cloud(points, obs, views)
         if len(cloud.obs_xy) and any(f > 1 for _c, f in full.values()):
             f = np.array([full[v.stamp_ns][1] for v in views], np.float64)
             cloud.obs_xy = ((cloud.obs_xy + 0.5) / f[cloud.obs_view, None]
@@ -431,13 +464,18 @@ class SegmentationNode(Node):
 
     def _publish_cloud(self, xyz: np.ndarray, rgb: np.ndarray, seq: int, stamp_ns: int,
                        source: str) -> bool:
-        """Publishes ``ooi/points`` unless a newer SfM cloud's OOI went out already."""
-        with self._lock:
-            if self._ooi is not None and self._ooi.cloud_seq > seq:
-                return False
-            self._ooi = _OoiCloud(np.asarray(xyz, np.float64), seq, stamp_ns, source)
-        self.pub_points.publish(msgconv.xyzrgb_to_pointcloud2(
-            xyz, rgb, msgconv.ns_to_stamp(stamp_ns), self.cfg.frame_id))
+        """Publishes ``ooi/points`` unless a newer SfM cloud's OOI went out already.
+
+        The check, the update and the publish are one step (``_cloud_pub_lock``): the full
+        run and the fast cloud-only run both call this, and an older cloud published after
+        a newer one would stay latched."""
+        with self._cloud_pub_lock:
+            with self._lock:
+                if self._ooi is not None and self._ooi.cloud_seq > seq:
+                    return False
+                self._ooi = _OoiCloud(np.asarray(xyz, np.float64), seq, stamp_ns, source)
+            self.pub_points.publish(msgconv.xyzrgb_to_pointcloud2(
+                xyz, rgb, msgconv.ns_to_stamp(stamp_ns), self.cfg.frame_id))
         self.diag.count("ooi_cloud_updates")
         self.diag.set("ooi_cloud", f"{len(xyz)} points from the SfM cloud of {stamp_ns} "
                                    f"({source})")

@@ -180,6 +180,7 @@ class SfmNode(Node):
         self.work: queue.Queue = queue.Queue(maxsize=self.cfg.queue_size)
         self._lock = threading.Lock()
         self._select_lock = threading.Lock()  # keyframe selection is stateful: one at a time
+        self._publish_lock = threading.Lock()  # points + observations go out as one pair
         self._last_image_ns = -1
         self.keyframes_processed = 0
         mib = 2 ** 20
@@ -390,7 +391,7 @@ class SfmNode(Node):
                 continue
             if not accepted:
                 for reason, n in self.selector.dropped.items():
-                    self.diag.counters[f"skipped_{reason}"] = n
+                    self.diag.set_count(f"skipped_{reason}", n)
                 continue
             self._publish_keyframe(view, msg)
             if self.selector.scene_scale and not self.sfm.scene_scale:
@@ -475,7 +476,7 @@ class SfmNode(Node):
         self.diag.set("feature_workers", self.pipe.workers)
         failures = int(self.sfm.counts.get("feature_worker_failures", 0))
         if failures:
-            self.diag.counters["feature_worker_failures"] = failures
+            self.diag.set_count("feature_worker_failures", failures)
         if self._stop.is_set():
             return  # shutting down: the publishers may be gone
         if self.keyframes_processed % self.cfg.publish_every == 0:
@@ -526,6 +527,13 @@ class SfmNode(Node):
                     pose=view.pose, image=small)
 
     def publish_cloud(self) -> int:
+        """Publishes the current cloud: points and their observations, one pair at a time
+        (the worker and the ``~/publish_cloud`` service may both call this; interleaved, the
+        latched observations could belong to another cloud than the latched points)."""
+        with self._publish_lock:
+            return self._publish_cloud_locked()
+
+    def _publish_cloud_locked(self) -> int:
         cloud = self.sfm.cloud()
         f = self.sfm_factor or 1
         if f > 1:  # observations and errors in the source image's pixels

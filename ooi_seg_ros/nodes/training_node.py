@@ -153,8 +153,9 @@ class TrainingNode(Node):
             on_evict=self._on_evict)
         self.diag.set("image_budget_mb", f"{budget / 2 ** 20:.0f}")
         self.keyframes = self.assembler.keyframes  # {stamp_ns: View}, capture order
-        self.ooi_xyz: Optional[np.ndarray] = None
-        self.ooi_rgb: Optional[np.ndarray] = None
+        # (xyz, rgb) of the latest OOI cloud, swapped as one: the training thread reads the
+        # pair while the executor may store the next cloud
+        self._ooi: Optional[tuple[np.ndarray, Optional[np.ndarray]]] = None
         self._ooi_sizes: list[int] = []
         self._busy = threading.Lock()
         self.result = None
@@ -282,10 +283,21 @@ class TrainingNode(Node):
     def on_ooi_points(self, msg: PointCloud2) -> None:
         self._record("ooi/points", msg, msgconv.stamp_to_ns(msg.header.stamp))
         xyz, rgb = msgconv.pointcloud2_to_xyzrgb(msg)
-        self.ooi_xyz, self.ooi_rgb = xyz, rgb
+        self._ooi = (xyz, rgb)
         self._ooi_sizes.append(len(xyz))
         self.diag.set("ooi_points", len(xyz))
         self._maybe_auto_start()
+
+    @property
+    def ooi_xyz(self) -> Optional[np.ndarray]:
+        """The latest OOI cloud's points (None before the first)."""
+        ooi = self._ooi
+        return None if ooi is None else ooi[0]
+
+    @property
+    def ooi_rgb(self) -> Optional[np.ndarray]:
+        ooi = self._ooi
+        return None if ooi is None else ooi[1]
 
     # ---- training ---------------------------------------------------------------------------
     def ooi_is_stable(self) -> bool:
@@ -336,8 +348,9 @@ class TrainingNode(Node):
                           if k in self.masks}
             masks = {str(k): _mask_at(bits, shape, f) for k, ((bits, shape), f) in packed.items()}
             capture = Capture(views=views, source="ros")
-            result = train(capture, masks, self.ooi_xyz, self.train_cfg,
-                           init_colors=self.ooi_rgb, progress=self._progress)
+            ooi_xyz, ooi_rgb = self._ooi
+            result = train(capture, masks, ooi_xyz, self.train_cfg,
+                           init_colors=ooi_rgb, progress=self._progress)
             self.result = result
             self.runs += 1
             stamp = msgconv.ns_to_stamp(views[-1].stamp_ns)

@@ -23,6 +23,7 @@ stages can be swapped by configuration.
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Collection, Optional
@@ -172,7 +173,9 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
     runs: its older keyframes' final masks). The masks then differ from a full run's by as
     much as the older masks differ from what a full run would make of those views now.
     """
-    cfg = config or make_config()
+    # a copy: a fallback below (masks from points when the mesh is empty) must not stay in
+    # the caller's config (a live node reuses one config for every run)
+    cfg = copy.deepcopy(config) if config is not None else make_config()
     views = capture.views
     if not views:
         raise InputError("capture has no views")
