@@ -65,8 +65,11 @@ def build_mesh(cloud: SfmCloud, cfg: MeshConfig) -> tuple[TriMesh, dict]:
     params: dict = {"method": cfg.method, "spacing": s}
     if cfg.method == "poisson":
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            # one thread: Open3D's multi-threaded Poisson gives a different mesh on every
+            # call (isl-org/Open3D#2117; measured here: 4 calls, 4 meshes), which made the
+            # masks of one input differ between runs; one thread was as fast on this box
             m, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-                pc, depth=int(cfg.poisson_depth))
+                pc, depth=int(cfg.poisson_depth), n_threads=1)
         dens = np.asarray(dens)
         if cfg.trim_quantile > 0 and len(dens):
             cut = np.quantile(dens, cfg.trim_quantile)
