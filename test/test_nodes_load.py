@@ -276,18 +276,29 @@ def test_sfm_on_downscaled_copies_publishes_source_pixels(ctx):
         node.destroy_node()
 
 
+def _blank_keyframes(node, n: int, n_orbit: int) -> list:
+    """Feeds ``n`` black 160x120 keyframes on an ``n_orbit``-view orbit to a segmentation
+    node's keyframe topics; returns their views (no image)."""
+    from ooi_seg_ros.core.types import View
+
+    cam = CameraIntrinsics(160, 120, 120.0, 120.0, 79.5, 59.5)
+    views = []
+    for k in range(n):
+        stamp = 10 ** 9 + k * 10 ** 8
+        pose = _orbit_pose(k, n_orbit)
+        node.on_kf_info(msgconv.intrinsics_to_camera_info(cam, stamp))
+        node.on_kf_pose(msgconv.pose_to_pose_stamped(pose, stamp, "map"))
+        node.on_kf_image(msgconv.rgb_to_image(np.zeros((120, 160, 3), np.uint8), stamp))
+        views.append(View(key=str(stamp), stamp_ns=stamp, camera=cam, pose=pose))
+    return views
+
+
 def test_segmentation_node_keeps_downscaled_keyframes_within_budget(ctx):
     node = SegmentationNode(context=ctx, namespace=_ns(), parameter_overrides=[
         Parameter("every_n_keyframes", value=0), Parameter("image_max_pixels", value=10_000),
         Parameter("image_budget_mb", value=3 * 80 * 60 * 3 / 2 ** 20)])
     try:
-        cam = CameraIntrinsics(160, 120, 120.0, 120.0, 79.5, 59.5)  # kept at 80x60
-        for k in range(6):
-            stamp = 10 ** 9 + k * 10 ** 8
-            pose = _orbit_pose(k, 6)
-            node.on_kf_info(msgconv.intrinsics_to_camera_info(cam, stamp))
-            node.on_kf_pose(msgconv.pose_to_pose_stamped(pose, stamp, "map"))
-            node.on_kf_image(msgconv.rgb_to_image(np.zeros((120, 160, 3), np.uint8), stamp))
+        _blank_keyframes(node, 6, 6)  # kept at 80x60
         assert len(node.keyframes) == 3
         assert node.diag.counters["dropped_keyframe_budget"] == 3
         assert all(v.image.shape == (60, 80, 3) for v in node.keyframes.values())
@@ -301,22 +312,14 @@ def test_segmentation_run_takes_the_observations_of_its_own_cloud(ctx, monkeypat
     cloud's) goes on without observations, counted -- never with the wrong cloud's."""
     import threading
 
-    from ooi_seg_ros.core.types import SfmCloud, View
+    from ooi_seg_ros.core.types import SfmCloud
     from ooi_seg_ros.nodes import segmentation_node as segmod
 
     monkeypatch.setattr(segmod, "OBS_WAIT_S", 0.5)
     node = SegmentationNode(context=ctx, namespace=_ns(), parameter_overrides=[
         Parameter("every_n_keyframes", value=0)])
     try:
-        cam = CameraIntrinsics(160, 120, 120.0, 120.0, 79.5, 59.5)
-        views = []
-        for k in range(3):
-            stamp = 10 ** 9 + k * 10 ** 8
-            pose = _orbit_pose(k, 12)
-            node.on_kf_info(msgconv.intrinsics_to_camera_info(cam, stamp))
-            node.on_kf_pose(msgconv.pose_to_pose_stamped(pose, stamp, "map"))
-            node.on_kf_image(msgconv.rgb_to_image(np.zeros((120, 160, 3), np.uint8), stamp))
-            views.append(View(key=str(stamp), stamp_ns=stamp, camera=cam, pose=pose))
+        views = _blank_keyframes(node, 3, 12)
         assert len(node.keyframes) == 3
 
         def cloud_msgs(n, stamp_ns):  # n points, each seen by keyframes 0 and 1
