@@ -18,6 +18,9 @@ SIFT contrast threshold.
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_sfm.py \
         --cases aircraft:60:320x240 tabletop:60:320x240
 
+``--band`` adds ``inc_band``, the incremental path with ``epipolar_band_matching`` (the ratio
+test among the candidates near each epipolar line), timed in the same run.
+
 ``--stream RATE ...`` measures throughput instead: the keyframes are fed to the serial path
 (extract, match, triangulate, query the cloud, one keyframe after the other) and to the
 pipelined one (``sfm.prefetch.PipelinedSfM``: SIFT of the next keyframes in a worker process
@@ -72,7 +75,8 @@ def _run_incremental(views, config) -> tuple:
 
 
 def run_case(scene: str, n_views: int, w: int, h: int, seed: int, guided: bool,
-             native: int = 0, native_peak: float = 0.0, repeats: int = 0) -> dict:
+             native: int = 0, native_peak: float = 0.0, repeats: int = 0,
+             band: bool = False) -> dict:
     from ooi_seg_ros.sfm.batch import batch_triangulate
     from ooi_seg_ros.sfm.incremental import IncrementalConfig
     from ooi_seg_ros.sim import simulate_capture
@@ -93,6 +97,9 @@ def run_case(scene: str, n_views: int, w: int, h: int, seed: int, guided: bool,
         extra = {"peak_threshold": native_peak} if native_peak > 0 else {}
         nat_cloud, _, nat_timing = _run_incremental(views, IncrementalConfig(
             guided_matching=guided, sift_upsample_max_pixels=native, **extra))
+    if band:  # matching within the epipolar band (IncrementalConfig option)
+        band_cloud, _, band_timing = _run_incremental(views, IncrementalConfig(
+            guided_matching=guided, epipolar_band_matching=True))
     spread = []
     for _ in range(repeats):  # the same incremental run again: how much the load moves it
         l0 = os.getloadavg()[0]
@@ -116,6 +123,8 @@ def run_case(scene: str, n_views: int, w: int, h: int, seed: int, guided: bool,
            "batch": {**no_timing, "kf_per_s": len(views) / t_batch, **stats(bcloud)}}
     if native:
         out["inc_nat"] = {**nat_timing, **stats(nat_cloud)}
+    if band:
+        out["inc_band"] = {**band_timing, **stats(band_cloud)}
     return out
 
 
@@ -319,6 +328,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--guided", action="store_true",
                     help="incremental path with guided matching (IncrementalConfig option)")
+    ap.add_argument("--band", action="store_true",
+                    help="add inc_band: the incremental path with epipolar_band_matching")
     ap.add_argument("--native-octave", type=int, default=0, metavar="PIXELS",
                     help="add row inc_nat: the incremental path with sift_upsample_max_pixels "
                          "PIXELS (e.g. 307200: 640x480 frames not upsampled)")
@@ -354,7 +365,7 @@ def main() -> int:
         scene, n, size = c.split(":")
         w, h = (int(x) for x in size.split("x"))
         r = run_case(scene, int(n), w, h, args.seed, args.guided, args.native_octave,
-                     args.native_peak, args.repeats)
+                     args.native_peak, args.repeats, args.band)
         rows.append(r)
         print(f"done {r['case']} (render {r['render_s']:.0f}s, load average "
               f"{r['load'][0]:.1f} -> {r['load'][1]:.1f})", flush=True)
@@ -363,7 +374,7 @@ def main() -> int:
            f"{'med dist/size':>13s} {'<1% size':>8s}")
     print(hdr)
     for r in rows:
-        for path in ("inc", "inc_all", "inc_t3", "inc_nat", "batch"):
+        for path in ("inc", "inc_all", "inc_t3", "inc_nat", "inc_band", "batch"):
             if path not in r:
                 continue
             m = r[path]

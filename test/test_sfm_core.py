@@ -12,7 +12,8 @@ from ooi_seg_ros.cli import main as cli_main
 from ooi_seg_ros.core.types import CameraIntrinsics, InputError, Pose
 from ooi_seg_ros.sfm.colmap_io import load_colmap_model
 from ooi_seg_ros.sfm.export import write_colmap_model, write_ply
-from ooi_seg_ros.sfm.incremental import IncrementalConfig, IncrementalSfM, undistort_normalized
+from ooi_seg_ros.sfm.incremental import (IncrementalConfig, IncrementalSfM, _sampson_px, _skew,
+                                         undistort_normalized)
 from ooi_seg_ros.sfm.keyframes import KeyframeConfig, KeyframeSelector, laplacian_variance
 from ooi_seg_ros.sfm.pipeline import SfmConfig, reconstruct
 from ooi_seg_ros.sfm.prefetch import PipelinedSfM
@@ -103,6 +104,49 @@ def test_guided_matching_grows_tracks_into_later_keyframes(sim, built):
     assert cloud.track_lengths().mean() > plain.track_lengths().mean()
     d = np.abs(sim.scene.distance_to_surface(cloud.xyz))
     assert np.median(d) < 0.005 * sim.scene.summary()["scale"]
+
+
+def _keyframe(view, xyz, desc):
+    """A keyframe of ``view`` with features at the projections of ``xyz`` (known descriptors)."""
+    from ooi_seg_ros.sfm.incremental import _Keyframe
+    R_cw, t_cw = view.pose.world_to_cam()
+    pc = xyz @ R_cw.T + t_cw
+    xn = pc[:, :2] / pc[:, 2:]
+    cam = view.camera
+    xy = xn * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+    return _Keyframe(view, xy, xn, desc, np.zeros((len(xy), 3), np.uint8), 0, R_cw, t_cw)
+
+
+def test_epipolar_band_matching_finds_a_match_a_repeated_descriptor_hides(sim):
+    """A feature whose descriptor repeats elsewhere in the other image fails the global ratio
+    test; among the candidates near its epipolar line it is unambiguous."""
+    a_view, b_view = sim.capture.views[0], sim.capture.views[1]
+    rng = np.random.default_rng(0)
+    summary = sim.scene.summary()
+    xyz = (np.asarray(summary["ooi_center"])
+           + rng.uniform(-0.5, 0.5, (30, 3)) * summary["ooi_radius"])
+    desc = rng.integers(0, 256, (30, 128)).astype(np.uint8)
+    a = _keyframe(a_view, xyz, desc)
+    b = _keyframe(b_view, xyz, desc)
+    # the last feature's descriptor appears a second time in b, far from its epipolar line
+    far = b.xn[-1] + [0.0, 0.3]
+    b.xn = np.r_[b.xn, far[None]]
+    b.desc = np.r_[b.desc, desc[-1:]]
+    for band in (False, True):
+        sfm = IncrementalSfM(IncrementalConfig(epipolar_band_matching=band))
+        m, _ = sfm._match(a, b)
+        assert len(m) >= 29 and all(i == j for i, j in m)  # every match is the true one
+        assert (29 in m[:, 0]) == band
+    # the band is the Sampson test of the verification, for every pair at once
+    R = b.R_cw @ a.R_cw.T
+    E = _skew(b.t_cw - R @ a.t_cw) @ R
+    f = a_view.camera.fx
+    band = sfm._epipolar_band(a.xn, b.xn, E, f).numpy()
+    ia, ib = np.meshgrid(np.arange(len(a.xn)), np.arange(len(b.xn)), indexing="ij")
+    ref = _sampson_px(a.xn[ia.ravel()], b.xn[ib.ravel()], E, f).reshape(band.shape)
+    assert band.sum() >= 31  # the true pairs at least
+    sure = np.abs(ref - sfm.config.epipolar_px) > 1e-3  # float32 may round the boundary
+    assert np.array_equal(band[sure], (ref < sfm.config.epipolar_px)[sure])
 
 
 def test_large_keyframes_skip_the_upsampled_sift_octave(sim, built):

@@ -5,7 +5,10 @@ only for small images, bounding the extraction cost as frames grow), keypoints u
 to normalised camera coordinates, pairs chosen from the poses (sequential neighbours plus the
 keyframes whose view frustums overlap most), mutual-nearest-neighbour matching with Lowe's
 ratio test, and geometric verification with the epipolar geometry the known poses imply
-(Sampson distance in pixels).
+(Sampson distance in pixels). With ``epipolar_band_matching`` the pair's matches are then
+completed by the same test among the candidates near each feature's epipolar line only: a
+feature on a thin part (a wing tip, a spoke) whose descriptor has near-twins elsewhere in the
+image fails the global ratio test but is unambiguous along its line.
 Verified matches are merged into tracks by an incremental union-find. ``cloud()`` triangulates
 only tracks that changed since the last call (multi-view DLT with the poses fixed), drops
 observations with a large reprojection error, and keeps points with enough triangulation angle
@@ -57,6 +60,9 @@ class IncrementalConfig:
     min_tri_angle_deg: float = 1.5  # points seen under a smaller max ray angle are dropped
     min_track_length: int = 2  # points need this many observing keyframes
     refine_iters: int = 3  # Gauss-Newton steps on each point's reprojection error (poses fixed)
+    epipolar_band_matching: bool = False  # ratio test and mutual check among the candidates
+    # within ``epipolar_px`` of the epipolar line only (the known poses restrict the search):
+    # descriptors repeated elsewhere in the image no longer fail the ratio test
     guided_matching: bool = False  # extend known points into each new keyframe by projection
     # (longer tracks, but merges tracks on thin repeated structure: fewer points; see BENCHMARKS)
     conditioned_two_view: bool = True  # cloud(): emit only the well-conditioned 2-view points:
@@ -64,8 +70,8 @@ class IncrementalConfig:
     # the multi-view (3+ keyframe) points' uncertainties ...
     two_view_residual_quantile: float = 0.5  # ... and reprojection error (per degree of
     # freedom) at most this quantile of the multi-view points' (a mismatch fits its rays worse)
-    guided_desc_quantile: float = 0.9  # guided match: descriptor distance up to this quantile
-    # of the keyframe's own verified descriptor matches
+    guided_desc_quantile: float = 0.9  # guided and band matches: descriptor distance up to
+    # this quantile of the keyframe's (band: the pair's) own verified global matches
     seed: int = 0  # seed for anything random (none at present; kept for determinism)
 
 
@@ -109,6 +115,17 @@ def undistort_normalized(xy: np.ndarray, cam: CameraIntrinsics, iters: int = 20)
 
 def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def _sampson_px(xa: np.ndarray, xb: np.ndarray, E: np.ndarray, f: float) -> np.ndarray:
+    """Sampson distance in pixels of matched normalised points ``xa`` <-> ``xb`` under ``E``."""
+    x1 = np.c_[xa, np.ones(len(xa))]
+    x2 = np.c_[xb, np.ones(len(xb))]
+    Ex1 = x1 @ E.T
+    Etx2 = x2 @ E
+    num = np.sum(x2 * Ex1, 1) ** 2
+    den = Ex1[:, 0]**2 + Ex1[:, 1]**2 + Etx2[:, 0]**2 + Etx2[:, 1]**2
+    return np.sqrt(num / np.maximum(den, 1e-18)) * f
 
 
 def _gauss_newton_step(X: np.ndarray, P: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -369,36 +386,62 @@ class IncrementalSfM:
         da = torch.nn.functional.normalize(da, dim=1)
         db = torch.nn.functional.normalize(db, dim=1)
         sim = da @ db.T
+        R = b.R_cw @ a.R_cw.T
+        t = b.t_cw - R @ a.t_cw
+        E = _skew(t) @ R
+        f = 0.5 * (a.view.camera.fx + b.view.camera.fx)
+        m, d, best = self._ratio_matches(sim, a.xn, b.xn, E, f)
+        if cfg.epipolar_band_matching and len(m) >= cfg.min_inliers:
+            # the same test among the candidates near each epipolar line only; a band match
+            # must be as close in descriptor space as the pair's global matches mostly are
+            # (a lone candidate on the line always passes the ratio test). Rows whose best
+            # candidate anywhere is farther than that cannot give one: left out (exact, and the
+            # band then costs a fraction of the full [na, nb] product)
+            cap = float(np.quantile(d, cfg.guided_desc_quantile))
+            rows = np.nonzero(best >= 1.0 - 0.5 * cap * cap)[0]
+            band = self._epipolar_band(a.xn[rows], b.xn, E, f)
+            sub = sim[torch.from_numpy(rows)].masked_fill_(~band, -2.0)
+            mb, db_, _ = self._ratio_matches(sub, a.xn[rows], b.xn, E, f)
+            mb[:, 0] = rows[mb[:, 0]]
+            keep = (db_ <= cap) & ~np.isin(mb[:, 0], m[:, 0]) & ~np.isin(mb[:, 1], m[:, 1])
+            m, d = np.r_[m, mb[keep]], np.r_[d, db_[keep]]
+        if len(m) < cfg.min_inliers:
+            return none
+        return m, d
+
+    def _ratio_matches(self, sim, xa: np.ndarray, xb: np.ndarray, E: np.ndarray, f: float
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Ratio-tested, mutual, epipolar-verified matches [m,2] of a [na, nb] similarity
+        matrix, their descriptor distances, and every row's best similarity."""
+        import torch
+        cfg = self.config
         top, idx = torch.topk(sim, 2, dim=1)
         # mutual check against each column's maximum: amax over dim 0 is ~20x cheaper than
         # argmax over dim 0 (a strided reduction) and equal up to exact ties
-        col_best = torch.amax(sim, dim=0).numpy()
+        col_best = sim.amax(dim=0).numpy()
         top = top.numpy()
         d_ab = np.sqrt(np.maximum(2.0 - 2.0 * top.astype(np.float64), 0.0))
         best_b = idx[:, 0].numpy()
         ratio_ok = d_ab[:, 0] < cfg.ratio * d_ab[:, 1]
         mutual = top[:, 0] >= col_best[best_b]
-        idx_a = np.nonzero(ratio_ok & mutual)[0]
+        idx_a = np.nonzero(ratio_ok & mutual & (top[:, 0] > -1.5))[0]
         idx_b = best_b[idx_a]
-        if len(idx_a) == 0:
-            return none
         # epipolar check with the known relative pose (normalised coords, Sampson -> pixels)
-        R = b.R_cw @ a.R_cw.T
-        t = b.t_cw - R @ a.t_cw
-        E = _skew(t) @ R
-        x1 = np.c_[a.xn[idx_a], np.ones(len(idx_a))]
-        x2 = np.c_[b.xn[idx_b], np.ones(len(idx_b))]
-        Ex1 = x1 @ E.T
-        Etx2 = x2 @ E
-        num = np.sum(x2 * Ex1, 1) ** 2
-        den = Ex1[:, 0]**2 + Ex1[:, 1]**2 + Etx2[:, 0]**2 + Etx2[:, 1]**2
-        f = 0.5 * (a.view.camera.fx + b.view.camera.fx)
-        samp_px = np.sqrt(num / np.maximum(den, 1e-18)) * f
-        ok = samp_px < cfg.epipolar_px
-        m = np.stack([idx_a[ok], idx_b[ok]], 1)
-        if len(m) < cfg.min_inliers:
-            return none
-        return m, d_ab[idx_a[ok], 0]
+        ok = _sampson_px(xa[idx_a], xb[idx_b], E, f) < cfg.epipolar_px
+        return np.stack([idx_a[ok], idx_b[ok]], 1), d_ab[idx_a[ok], 0], top[:, 0]
+
+    def _epipolar_band(self, xa: np.ndarray, xb: np.ndarray, E: np.ndarray, f: float):
+        """[na, nb] torch bool: pairs within ``epipolar_px`` (Sampson distance) of each other's
+        epipolar line (float32: ~16M pairs at 4096 features a keyframe)."""
+        import torch
+        x1 = torch.from_numpy(np.c_[xa, np.ones(len(xa))].astype(np.float32))
+        x2 = torch.from_numpy(np.c_[xb, np.ones(len(xb))].astype(np.float32))
+        Et = torch.from_numpy(E.astype(np.float32))
+        Ex1 = x1 @ Et.T  # [na,3] lines in b
+        Etx2 = x2 @ Et  # [nb,3] lines in a
+        num = (Ex1 @ x2.T).square_()
+        den = (Ex1[:, :2].square().sum(1, keepdim=True) + Etx2[:, :2].square().sum(1)[None, :])
+        return num < den.clamp_(min=1e-18).mul_((self.config.epipolar_px / f) ** 2)
 
     # -- public -------------------------------------------------------------------------------
     def add_keyframe(self, view: View, features: Optional[KeyframeFeatures] = None) -> dict:
