@@ -99,7 +99,7 @@ def outline_band(gt: np.ndarray, width: float) -> np.ndarray:
 def attribute(scene: str, args) -> dict:
     """Run the default on ``scene`` and split its error pixels by cause."""
     w, h = (int(x) for x in args.size.split("x"))
-    cap, cloud, _ = load_case(scene, 0, args.views, (w, h), "sfm", Path(args.cache))
+    cap, cloud, _ = load_case(scene, args.seed, args.views, (w, h), "sfm", Path(args.cache))
     views = cap.views
     idx = {v.key: i for i, v in enumerate(views)}
     floors: dict[int, np.ndarray] = {}
@@ -121,7 +121,7 @@ def attribute(scene: str, args) -> dict:
     keys = [v.key for v in views[::args.view_step]] if args.view_step > 1 else None
     photo.PlaneConsistency.floor_maps = record
     try:
-        cfg = make_config("ours", dict(json.loads(args.set or "{}"), seed=0))
+        cfg = make_config("ours", dict(json.loads(args.set or "{}"), seed=args.seed))
         t0 = time.perf_counter()
         r = segment(cap, cloud, cfg, mask_keys=keys)
         dt = time.perf_counter() - t0
@@ -136,7 +136,8 @@ def attribute(scene: str, args) -> dict:
     # OOI cloud), so "under an impure point" means the same disc that seeded the silhouette
     radii = point_radii(xyz, cfg.masks.splat_k, cfg.masks.splat_scale)
     splat_bad = point_masks(xyz[~on_obj], radii[~on_obj], mviews, cfg.masks)
-    depth, support_z, radius = sim_depths(scene, 0, args.views, (w, h), Path(args.cache))
+    depth, support_z, radius = sim_depths(scene, args.seed, args.views, (w, h),
+                                          Path(args.cache))
     fn = {c: 0 for c in FN_CAUSES}
     fp = {c: 0 for c in FP_CAUSES}
     fp_plane = 0
@@ -205,6 +206,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["aircraft", "tabletop", "bicycle", "toycar"])
+    ap.add_argument("--seed", type=int, default=0, help="simulator seed of the captures")
     ap.add_argument("--views", type=int, default=60)
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2")

@@ -7,6 +7,8 @@ variant then runs on the same cloud. ``--cloud proxy`` uses the old depth-proxy 
 (``seg.proxy``) instead. ``demo`` as a scene is the bundled bag ``bags/demo.mcap`` with the
 default SfM (keyframe selection on), as ``ooi-seg segment bags/demo.mcap`` runs it.
 Prints per-run and per-scene mean IoU / precision / recall / Dice side by side.
+``--sfm-set JSON`` runs the SfM with ``IncrementalConfig`` overrides (its clouds cached apart,
+under a name made from the overrides), e.g. ``'{"epipolar_band_matching": false}'``.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_quality.py \
         --scenes aircraft tabletop bicycle toycar demo --seeds 0 --views 60 --size 320x240
@@ -18,6 +20,7 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -121,19 +124,30 @@ def _load(path: Path) -> tuple[Capture, SfmCloud]:
 
 
 def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source: str,
-              cache: Path, refresh: bool = False) -> tuple[Capture, SfmCloud, dict]:
-    """(capture with GT masks, cloud, info) of one case; SfM clouds are cached in ``cache``."""
+              cache: Path, refresh: bool = False,
+              sfm_set: Optional[dict] = None) -> tuple[Capture, SfmCloud, dict]:
+    """(capture with GT masks, cloud, info) of one case; SfM clouds are cached in ``cache``.
+
+    ``sfm_set``: ``IncrementalConfig`` overrides (cached apart, under a name made from them).
+    """
     from ooi_seg_ros.sfm.pipeline import SfmConfig, reconstruct
+    from ooi_seg_ros.sfm.incremental import IncrementalConfig
+    tag = ""
+    if sfm_set:
+        tag = "_" + "_".join(f"{k}-{v}" for k, v in sorted(sfm_set.items()))
+
+    def sfm_config(**kw) -> SfmConfig:
+        return SfmConfig(incremental=IncrementalConfig(**(sfm_set or {})), progress=False, **kw)
     w, h = size
     if scene == "demo":
-        path = cache / "seg_bench_demo.npz"
+        path = cache / f"seg_bench_demo{tag}.npz"
         if path.exists() and not refresh:
             cap, cloud = _load(path)
             return cap, cloud, {"cached": True}
         from ooi_seg_ros.capture_io import read_capture_and_cloud
         cap, _ = read_capture_and_cloud(ROOT / "bags" / "demo.mcap")
         t0 = time.perf_counter()
-        _, cloud, _ = reconstruct(cap, SfmConfig(progress=False))
+        _, cloud, _ = reconstruct(cap, sfm_config())
         cache.mkdir(parents=True, exist_ok=True)
         _save(path, cap, cloud)
         return cap, cloud, {"cached": False, "sfm_s": time.perf_counter() - t0}
@@ -142,13 +156,13 @@ def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source
         from ooi_seg_ros.seg.proxy import depth_proxy_cloud
         sim = simulate_capture(scene, n_views=n_views, width=w, height=h, seed=seed)
         return sim.capture, depth_proxy_cloud(sim, 300, seed=seed), {"cached": False}
-    path = cache / f"seg_bench_{scene}_s{seed}_v{n_views}_{w}x{h}.npz"
+    path = cache / f"seg_bench_{scene}_s{seed}_v{n_views}_{w}x{h}{tag}.npz"
     if path.exists() and not refresh:
         cap, cloud = _load(path)
         return cap, cloud, {"cached": True}
     sim = simulate_capture(scene, n_views=n_views, width=w, height=h, seed=seed)
     t0 = time.perf_counter()
-    _, cloud, _ = reconstruct(sim.capture, SfmConfig(use_all_frames=True, progress=False))
+    _, cloud, _ = reconstruct(sim.capture, sfm_config(use_all_frames=True))
     cache.mkdir(parents=True, exist_ok=True)
     _save(path, sim.capture, cloud)
     return sim.capture, cloud, {"cached": False, "sfm_s": time.perf_counter() - t0}
@@ -173,6 +187,8 @@ def main() -> None:
     ap.add_argument("--view-step", type=int, default=1,
                     help="mask every k-th view only (quick experiments; the point stages and "
                          "the plane check still see every view, via segment(mask_keys=...))")
+    ap.add_argument("--sfm-set", type=json.loads, default=None, metavar="JSON",
+                    help="IncrementalConfig overrides for the SfM (its clouds cached apart)")
     ap.add_argument("--json", help="write all per-run metrics here")
     args = ap.parse_args()
     w, h = (int(x) for x in args.size.split("x"))
@@ -187,7 +203,7 @@ def main() -> None:
         seeds = [0] if scene == "demo" else args.seeds
         for seed in seeds:
             cap, cloud, info = load_case(scene, seed, args.views, (w, h), args.cloud,
-                                         Path(args.cache), args.refresh)
+                                         Path(args.cache), args.refresh, args.sfm_set)
             keys = None
             if args.view_step > 1:
                 keys = [v.key for v in cap.views[::args.view_step]]
