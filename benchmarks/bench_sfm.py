@@ -74,6 +74,9 @@ def _run_incremental(views, config) -> tuple:
     return cloud, sfm.cloud(conditioned=False), timing
 
 
+TRACK_STRATA = ((2, 2), (3, 3), (4, 5), (6, 10 ** 6))
+
+
 def run_case(scene: str, n_views: int, w: int, h: int, seed: int, guided: bool,
              native: int = 0, native_peak: float = 0.0, repeats: int = 0,
              band: bool = False) -> dict:
@@ -112,8 +115,17 @@ def run_case(scene: str, n_views: int, w: int, h: int, seed: int, guided: bool,
 
     def stats(c) -> dict:
         a = acc(c.xyz)
-        return {"points": len(c), "track": float(c.track_lengths().mean()),
-                "med_dist_frac": a[0], "within_1pct": a[1]}
+        tl = c.track_lengths()
+        d = np.abs(sim.scene.distance_to_surface(c.xyz)) / scale
+        # median distance per track length: whether a path is less accurate point for point
+        # or holds fewer long (well-conditioned) tracks
+        strata = {}
+        for lo, hi in TRACK_STRATA:
+            m = (tl >= lo) & (tl <= hi)
+            strata[f"{lo}-{hi}" if hi > lo else f"{lo}"] = (
+                int(m.sum()), float(np.median(d[m])) if m.any() else float("nan"))
+        return {"points": len(c), "track": float(tl.mean()),
+                "med_dist_frac": a[0], "within_1pct": a[1], "by_track": strata}
 
     out = {"case": f"{scene} {n_views}x {w}x{h}", "render_s": t_render,
            "load": (load0, os.getloadavg()[0]), "repeats": spread,
@@ -388,6 +400,10 @@ def main() -> int:
                   f"{t['p95_s_per_kf']:.2f} max {t['max_s_per_kf']:.2f}, cpu s/kf median "
                   f"{t['med_cpu_per_kf']:.2f} p95 {t['p95_cpu_per_kf']:.2f} (load average "
                   f"{t['load'][0]:.1f} -> {t['load'][1]:.1f})")
+        for path in ("inc", "batch"):
+            cells = ", ".join(f"{k.replace('-1000000', '+')}: {n} pts {md:.5f}"
+                              for k, (n, md) in r[path]["by_track"].items())
+            print(f"{'':26s} {path} by track length (points, median distance / size): {cells}")
         share = r['inc']['points'] / max(r['batch']['points'], 1)
         ok = share >= 0.9 and r['inc']['med_dist_frac'] <= r['batch']['med_dist_frac']
         print(f"{'':26s} inc/batch points {share:.2f}, median distance "

@@ -10,14 +10,6 @@ from ooi_seg_ros.cli import main
 from ooi_seg_ros.core.geometry import look_at
 from ooi_seg_ros.core.types import Capture, InputError, SfmCloud
 from ooi_seg_ros.seg.pipeline import make_config, segment
-from ooi_seg_ros.seg.proxy import depth_proxy_cloud
-from ooi_seg_ros.sim import simulate_capture
-
-
-@pytest.fixture(scope="module")
-def aircraft():
-    sim = simulate_capture("aircraft", n_views=12, width=128, height=96, seed=0)
-    return sim, depth_proxy_cloud(sim, 300, seed=0)
 
 
 def test_ours_beats_paper_on_sim(aircraft):

@@ -552,6 +552,10 @@ class SegmentationNode(Node):
             self.diag.set("masks_refined_last_run", len(result.masks))
             self.diag.set("masks_reused_last_run", reused)
             self.diag.count("masks_reused", reused)
+            st = result.params.get("stability") if hasattr(result, "params") else None
+            if st and st.get("draws"):
+                # how close the OOI choice is (seg/stability.py): re-runs that chose otherwise
+                self.diag.set("ooi_stability_flips_last_run", f"{st['flips']} of {st['draws']}")
             for w in getattr(result, "warnings", []) or []:
                 self.throttle.warn("segwarn:" + w[:40], f"segmentation: {w}")
             d = self.diag.values

@@ -42,6 +42,7 @@ from .noise import NoiseConfig, noise_filter
 from .photo import background_planes
 from .refine import RefineConfig, refine_masks
 from .roi import RoiConfig, frame_radius, roi_filter
+from .stability import StabilityConfig, stability_check, stability_warning
 
 METHODS = ("paper", "ours")
 
@@ -57,6 +58,8 @@ class SegmentationConfig:
     density: DensityConfig = field(default_factory=DensityConfig)  # 4.1 Monte Carlo KDE
     floor: FloorConfig = field(default_factory=FloorConfig)  # 4.2 floor removal
     noise: NoiseConfig = field(default_factory=NoiseConfig)  # 4.3 noise removal
+    stability: StabilityConfig = field(default_factory=StabilityConfig)  # re-runs of the
+    # point stages on copies with points left out: a warning when the OOI choice flips
     mesh: MeshConfig = field(default_factory=MeshConfig)  # 4.4 meshing
     masks: MaskConfig = field(default_factory=MaskConfig)  # 4.5 masks
     refine: RefineConfig = field(default_factory=RefineConfig)  # per-view GrabCut refinement
@@ -71,7 +74,7 @@ def preset(method: str) -> dict:
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "mesh", "closing_kernel": 5, "fill_holes": False,
                           "hull_consistency": False},
-                "refine": {"enabled": False}}
+                "refine": {"enabled": False}, "stability": {"draws": 0}}
     if method == "ours":
         return {"method": "ours", "roi": {"enabled": True},
                 "density": {"drop_fraction": 0.05, "first_peak": False},
@@ -146,6 +149,38 @@ def _only_hull_add(cfg: SegmentationConfig) -> bool:
     return bool(cfg.refine.enabled and cfg.refine.hull_add and not (
         cfg.masks.hull_consistency or cfg.masks.hull_carve
         or cfg.refine.fg_seeds == "consistent"))
+
+
+def _point_stages(cfg: SegmentationConfig, views: list, target: np.ndarray, radius: float,
+                  cam_centers: np.ndarray, cam_up: np.ndarray) -> list:
+    """The point stages of ``cfg`` in order: [(name, fn(xyz) -> (kept indices, params))]."""
+    stages = []
+    if cfg.roi.enabled:
+        stages.append(("roi", lambda x: roi_filter(x, views, target, cfg.roi)))
+    order = ["floor", "density"] if cfg.method == "ours" else ["density", "floor"]
+    for name in order:
+        if name == "density":
+            stages.append(("density", lambda x: density_filter(x, cfg.density)))
+        else:
+            stages.append(("floor", lambda x: floor_filter(x, cfg.floor, cam_centers, cam_up,
+                                                           target)))
+    stages.append(("noise", lambda x: noise_filter(x, cfg.noise, target, radius)))
+    return stages
+
+
+def _run_point_stages(stages: list, xyz: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Indices (into ``xyz``) of the OOI set the point stages choose from the points ``idx``;
+    empty when a stage leaves fewer than 4 points or finds the input degenerate."""
+    sub = np.asarray(idx, np.int64)
+    for _, fn in stages:
+        if len(sub) < 4:
+            return np.zeros(0, np.int64)
+        try:
+            keep, _ = fn(xyz[sub])
+        except (InputError, ValueError, np.linalg.LinAlgError):
+            return np.zeros(0, np.int64)
+        sub = sub[np.asarray(keep, np.int64)]
+    return sub if len(sub) >= 4 else np.zeros(0, np.int64)
 
 
 def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConfig] = None,
@@ -246,17 +281,20 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
                              f"points); the cloud may be all one plane or pure noise -- "
                              f"check the input or try the other --method")
 
-    if cfg.roi.enabled:
-        run("roi", lambda x: roi_filter(x, views, target, cfg.roi))
-    order = ["floor", "density"] if cfg.method == "ours" else ["density", "floor"]
-    for name in order:
-        if name == "density":
-            run("density", lambda x: density_filter(x, cfg.density))
-        else:
-            run("floor", lambda x: floor_filter(x, cfg.floor, cam_centers, cam_up, target))
-    run("noise", lambda x: noise_filter(x, cfg.noise, target, radius))
+    stages = _point_stages(cfg, views, target, radius, cam_centers, cam_up)
+    for name, fn in stages:
+        run(name, fn)
     if on_cloud is not None:
         on_cloud(cloud)
+    if cfg.stability.draws > 0:
+        t0 = time.perf_counter()
+        params["stability"] = stability_check(
+            len(full), sel, lambda idx: _run_point_stages(stages, full.xyz, idx),
+            cfg.stability, cfg.seed)
+        timings["stability"] = time.perf_counter() - t0
+        w = stability_warning(params["stability"], len(cloud))
+        if w:
+            warnings.append(f"stability: {w}")
     t0 = time.perf_counter()
     try:
         mesh, params["mesh"] = build_mesh(cloud, cfg.mesh)

@@ -1,0 +1,73 @@
+"""The OOI-cloud stability check: re-runs of the point stages on copies of the cloud."""
+
+import numpy as np
+import pytest
+
+from ooi_seg_ros.seg.pipeline import make_config, segment
+from ooi_seg_ros.seg.stability import StabilityConfig, stability_check, stability_warning
+
+
+def test_a_stable_choice_has_no_flips_and_a_changing_one_is_counted():
+    n = 1000
+    chosen = np.arange(400)
+    cfg = StabilityConfig(draws=6, drop=0.1)
+    stable = stability_check(n, chosen, lambda idx: idx[idx < 400], cfg, seed=0)
+    assert stable["flips"] == 0 and stable["jaccard"] == [1.0] * 6
+    assert stability_warning(stable, 400) == ""
+    # copies that take a neighbour of 400 more points: Jaccard ~0.5 each
+    grown = stability_check(n, chosen, lambda idx: idx[idx < 800], cfg, seed=0)
+    assert grown["flips"] == 6 and max(grown["jaccard"]) < 0.6
+    assert all(700 < s < 800 for s in grown["sizes"])
+    w = stability_warning(grown, 400)
+    assert "6 of 6 re-runs" in w and "instead of 400" in w and "report.html" in w
+    # copies that find no object at all are flips too
+    none = stability_check(n, chosen, lambda idx: np.zeros(0, np.int64), cfg, seed=0)
+    assert none["flips"] == 6 and none["jaccard"] == [0.0] * 6
+
+
+def test_the_copies_are_seeded_and_bounded():
+    seen = []
+
+    def record(idx):
+        seen.append(idx.copy())
+        return idx[idx < 100]
+
+    cfg = StabilityConfig(draws=3, drop=0.25, max_points=500)
+    a = stability_check(2000, np.arange(100), record, cfg, seed=7)
+    b = stability_check(2000, np.arange(100), record, cfg, seed=7)
+    assert a == b
+    for x, y in zip(seen[:3], seen[3:]):
+        np.testing.assert_array_equal(x, y)
+    # at most max_points points, of which about 75% in each copy
+    assert all(300 < len(x) < 450 and len(np.unique(x)) == len(x) for x in seen)
+    assert stability_check(2000, np.arange(100), record, StabilityConfig(draws=0), 0)[
+        "jaccard"] == []
+    with pytest.raises(ValueError, match="drop"):
+        stability_check(10, np.arange(5), record, StabilityConfig(drop=1.0), 0)
+
+
+def test_pipeline_reports_the_check_and_keeps_the_ooi_cloud(aircraft):
+    sim, cloud = aircraft
+    over = {"refine": {"enabled": False}}
+    r = segment(sim.capture, cloud, make_config("ours", over))
+    st = r.params["stability"]
+    assert st["draws"] == 5 and len(st["jaccard"]) == 5 and st["flips"] == 0
+    assert min(st["jaccard"]) > 0.9 and "stability" in r.timings
+    assert not any(w.startswith("stability") for w in r.warnings)
+    # the check only reports: the same OOI cloud and masks without it
+    off = segment(sim.capture, cloud, make_config("ours", dict(over, stability={"draws": 0})))
+    np.testing.assert_array_equal(off.ooi_cloud.xyz, r.ooi_cloud.xyz)
+    assert all((off.masks[k] == r.masks[k]).all() for k in r.masks)
+    assert "stability" not in off.params
+    # the paper's baseline runs without it
+    assert "stability" not in segment(sim.capture, cloud, make_config("paper")).params
+
+
+def test_a_flip_becomes_a_warning(aircraft):
+    sim, cloud = aircraft
+    # a Jaccard index is at most 1: with this bound every copy counts as a flip
+    r = segment(sim.capture, cloud, make_config(
+        "ours", {"refine": {"enabled": False}, "stability": {"draws": 2, "min_jaccard": 1.01}}))
+    assert r.params["stability"]["flips"] == 2
+    w = [w for w in r.warnings if w.startswith("stability:")]
+    assert len(w) == 1 and "2 of 2 re-runs" in w[0] and f"instead of {len(r.ooi_cloud)}" in w[0]
