@@ -4,24 +4,27 @@ import numpy as np
 import pytest
 
 from ooi_seg_ros.seg.pipeline import make_config, segment
-from ooi_seg_ros.seg.stability import StabilityConfig, stability_check, stability_warning
+from ooi_seg_ros.seg.pipeline import preset
+from ooi_seg_ros.seg.noise import NoiseConfig
+from ooi_seg_ros.seg.stability import (StabilityConfig, centred_alternative, stability_check,
+                                       stability_warning)
 
 
 def test_a_stable_choice_has_no_flips_and_a_changing_one_is_counted():
     n = 1000
     chosen = np.arange(400)
     cfg = StabilityConfig(draws=6, drop=0.1)
-    stable = stability_check(n, chosen, lambda idx: idx[idx < 400], cfg, seed=0)
+    stable = stability_check(n, chosen, lambda idx: (idx[idx < 400], {}), cfg, seed=0)
     assert stable["flips"] == 0 and stable["jaccard"] == [1.0] * 6
     assert stability_warning(stable, 400) == ""
     # copies that take a neighbour of 400 more points: Jaccard ~0.5 each
-    grown = stability_check(n, chosen, lambda idx: idx[idx < 800], cfg, seed=0)
+    grown = stability_check(n, chosen, lambda idx: (idx[idx < 800], {}), cfg, seed=0)
     assert grown["flips"] == 6 and max(grown["jaccard"]) < 0.6
     assert all(700 < s < 800 for s in grown["sizes"])
     w = stability_warning(grown, 400)
     assert "6 of 6 re-runs" in w and "instead of 400" in w and "report.html" in w
     # copies that find no object at all are flips too
-    none = stability_check(n, chosen, lambda idx: np.zeros(0, np.int64), cfg, seed=0)
+    none = stability_check(n, chosen, lambda idx: (np.zeros(0, np.int64), {}), cfg, seed=0)
     assert none["flips"] == 6 and none["jaccard"] == [0.0] * 6
 
 
@@ -30,7 +33,7 @@ def test_the_copies_are_seeded_and_bounded():
 
     def record(idx):
         seen.append(idx.copy())
-        return idx[idx < 100]
+        return idx[idx < 100], {}
 
     cfg = StabilityConfig(draws=3, drop=0.25, max_points=500)
     a = stability_check(2000, np.arange(100), record, cfg, seed=7)
@@ -67,7 +70,43 @@ def test_a_flip_becomes_a_warning(aircraft):
     sim, cloud = aircraft
     # a Jaccard index is at most 1: with this bound every copy counts as a flip
     r = segment(sim.capture, cloud, make_config(
-        "ours", {"refine": {"enabled": False}, "stability": {"draws": 2, "min_jaccard": 1.01}}))
+        "ours", {"refine": {"enabled": False},
+                 "stability": {"draws": 2, "min_jaccard": 1.01, "resolve": False}}))
     assert r.params["stability"]["flips"] == 2
     w = [w for w in r.warnings if w.startswith("stability:")]
     assert len(w) == 1 and "2 of 2 re-runs" in w[0] and f"instead of {len(r.ooi_cloud)}" in w[0]
+
+
+def _blob(rng, centre, radius, n):
+    d = rng.normal(size=(n, 3))
+    return centre + radius * d / np.linalg.norm(d, axis=1, keepdims=True) * rng.random((n, 1))
+
+
+def test_the_tie_break_keeps_the_set_centred_on_the_convergence_point():
+    rng = np.random.default_rng(0)
+    target = np.zeros(3)
+    obj = _blob(rng, target, 1.0, 600)  # the object the orbit frames
+    nbr = _blob(rng, np.array([2.0, 0.0, 0.0]), 0.7, 300)  # clutter beside it
+    xyz = np.vstack([obj, nbr])
+    cfg = NoiseConfig(**preset("ours")["noise"])
+    # the noise stage chose both (at 3 spacings they join); a flipped copy stopped at 2,
+    # where they are apart: the object alone is better centred and is kept
+    both = np.arange(len(xyz))
+    k, info = centred_alternative(xyz, both, [2.0], cfg, target, radius=3.0)
+    assert info["chosen_scale"] == 2.0 and sorted(k) == list(range(600))
+    assert info["candidates"][0][2] > info["candidates"][1][2]
+    # the other way round: the object alone stays when the copy took the clutter
+    k2, info2 = centred_alternative(xyz, k, [3.0], cfg, target, radius=3.0)
+    assert info2["chosen_scale"] is None and info2["candidates"][1][1] == 900
+    np.testing.assert_array_equal(k2, k)
+
+
+def test_a_resolved_flip_says_what_it_kept(aircraft):
+    sim, cloud = aircraft
+    r = segment(sim.capture, cloud, make_config(
+        "ours", {"refine": {"enabled": False}, "stability": {"draws": 2, "min_jaccard": 1.01}}))
+    st = r.params["stability"]
+    assert st["flips"] == 2 and "resolved" in st
+    w = [w for w in r.warnings if w.startswith("stability:")]
+    assert len(w) == 1 and ("kept this one" in w[0] or "kept instead" in w[0])
+    assert r.counts["stability"] == len(r.ooi_cloud)

@@ -110,6 +110,7 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
     """DBSCAN selection, with eps widened while the selection stays compact (see module)."""
     sp = spacing(xyz, cfg.min_samples)
     keep, p = _dbscan_at(xyz, cfg, target, radius, cfg.eps_scale * sp, sp)
+    p["eps_scale"] = round(cfg.eps_scale, 3)
     if cfg.eps_max_scale <= cfg.eps_scale or len(keep) == 0 or p["clusters"] <= 1:
         return keep, p
     settle = cfg.settle_change > 0
@@ -120,6 +121,7 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
         scale += max(cfg.eps_step, 1e-3)
         tried.append(round(scale, 3))
         k2, p2 = _dbscan_at(xyz, cfg, target, radius, scale * sp, sp)
+        p2["eps_scale"] = round(scale, 3)
         if len(k2) == 0:
             p["stopped_at_scale"] = round(scale, 3)
             break

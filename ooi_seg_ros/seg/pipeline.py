@@ -42,7 +42,8 @@ from .noise import NoiseConfig, noise_filter
 from .photo import background_planes
 from .refine import RefineConfig, refine_masks
 from .roi import RoiConfig, frame_radius, roi_filter
-from .stability import StabilityConfig, stability_check, stability_warning
+from .stability import (StabilityConfig, centred_alternative, stability_check,
+                        stability_warning)
 
 METHODS = ("paper", "ours")
 
@@ -168,19 +169,23 @@ def _point_stages(cfg: SegmentationConfig, views: list, target: np.ndarray, radi
     return stages
 
 
-def _run_point_stages(stages: list, xyz: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Indices (into ``xyz``) of the OOI set the point stages choose from the points ``idx``;
-    empty when a stage leaves fewer than 4 points or finds the input degenerate."""
+def _run_point_stages(stages: list, xyz: np.ndarray, idx: np.ndarray
+                      ) -> tuple[np.ndarray, dict]:
+    """Indices (into ``xyz``) of the OOI set the point stages choose from the points ``idx``
+    and the last stage's parameters; the set is empty when a stage leaves fewer than 4 points
+    or finds the input degenerate."""
     sub = np.asarray(idx, np.int64)
+    none = np.zeros(0, np.int64)
+    p: dict = {}
     for _, fn in stages:
         if len(sub) < 4:
-            return np.zeros(0, np.int64)
+            return none, {}
         try:
-            keep, _ = fn(xyz[sub])
+            keep, p = fn(xyz[sub])
         except (InputError, ValueError, np.linalg.LinAlgError):
-            return np.zeros(0, np.int64)
+            return none, {}
         sub = sub[np.asarray(keep, np.int64)]
-    return sub if len(sub) >= 4 else np.zeros(0, np.int64)
+    return (sub, p) if len(sub) >= 4 else (none, {})
 
 
 def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConfig] = None,
@@ -282,19 +287,35 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
                              f"check the input or try the other --method")
 
     stages = _point_stages(cfg, views, target, radius, cam_centers, cam_up)
+    noise_in = sel
     for name, fn in stages:
+        if name == "noise":
+            noise_in = sel.copy()
         run(name, fn)
-    if on_cloud is not None:
-        on_cloud(cloud)
     if cfg.stability.draws > 0:
         t0 = time.perf_counter()
-        params["stability"] = stability_check(
-            len(full), sel, lambda idx: _run_point_stages(stages, full.xyz, idx),
-            cfg.stability, cfg.seed)
+        st = stability_check(len(full), sel, lambda idx: _run_point_stages(stages, full.xyz, idx),
+                             cfg.stability, cfg.seed)
+        params["stability"] = st
+        w = stability_warning(st, len(cloud))
+        if w and cfg.stability.resolve and st["flip_scales"] and cfg.noise.method == "dbscan":
+            local = np.nonzero(np.isin(noise_in, sel))[0]
+            k, st["resolved"] = centred_alternative(full.xyz[noise_in], local, st["flip_scales"],
+                                                    cfg.noise, target, radius)
+            if st["resolved"]["chosen_scale"] is not None:
+                sel = noise_in[k]
+                cloud = full.subset(sel)
+                stage_clouds["stability"] = (cloud.xyz, cloud.rgb)
+                w += (f"; kept instead the better-centred choice of a re-run ({len(cloud)} "
+                      f"points, eps {st['resolved']['chosen_scale']} spacings)")
+            else:
+                w += "; kept this one (better centred on the cameras' convergence point)"
+        counts["stability"] = int(len(cloud))
         timings["stability"] = time.perf_counter() - t0
-        w = stability_warning(params["stability"], len(cloud))
         if w:
             warnings.append(f"stability: {w}")
+    if on_cloud is not None:
+        on_cloud(cloud)
     t0 = time.perf_counter()
     try:
         mesh, params["mesh"] = build_mesh(cloud, cfg.mesh)
