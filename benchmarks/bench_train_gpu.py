@@ -32,22 +32,25 @@ from ooi_seg_ros.train.raster_cpu import render as cpu_render
 from ooi_seg_ros.train.trainer import TrainConfig, train
 
 
-def export(scenes: list[str], out: Path, views: int, size: str) -> None:
-    """Simulate each scene and write OUT/<scene>.npz."""
+def export(scenes: list[str], out: Path, views: int, size: str, shade: bool = False) -> None:
+    """Simulate each scene and write OUT/<scene>.npz (OUT/<scene>_ss.npz with ``shade``: the
+    texture integrated over each pixel, the simulator's ``shade_subsamples``)."""
     from ooi_seg_ros.sim import simulate_capture
     w, h = (int(x) for x in size.split("x"))
     out.mkdir(parents=True, exist_ok=True)
     for scene in scenes:
-        cap = simulate_capture(scene, n_views=views, width=w, height=h, seed=0).capture
+        opts = {"shade_subsamples": True} if shade else {}
+        cap = simulate_capture(scene, n_views=views, width=w, height=h, seed=0, **opts).capture
         c = cap.views[0].camera
+        name = f"{scene}_ss" if shade else scene
         np.savez_compressed(
-            out / f"{scene}.npz", images=np.stack([v.get_image() for v in cap.views]),
+            out / f"{name}.npz", images=np.stack([v.get_image() for v in cap.views]),
             masks=np.stack([v.gt_mask for v in cap.views]),
             poses=np.stack([v.pose.matrix() for v in cap.views]),
             keys=np.array([v.key for v in cap.views]),
             stamps=np.array([v.stamp_ns for v in cap.views]),
             K=np.array([c.width, c.height, c.fx, c.fy, c.cx, c.cy]), ooi=cap.gt_ooi_points)
-        print(f"{scene}: {len(cap.views)} views -> {out / (scene + '.npz')}", flush=True)
+        print(f"{name}: {len(cap.views)} views -> {out / (name + '.npz')}", flush=True)
 
 
 def load(path: Path) -> Capture:
@@ -145,6 +148,8 @@ def main() -> None:
     e.add_argument("--out", default=".gpu")
     e.add_argument("--views", type=int, default=60)
     e.add_argument("--size", default="320x240")
+    e.add_argument("--shade-subsamples", action="store_true",
+                   help="texture integrated over each pixel (written as <scene>_ss.npz)")
     r = sub.add_parser("run")
     r.add_argument("--data", default=".gpu")
     r.add_argument("--budget", type=float, default=120.0, help="seconds per gsplat run")
@@ -157,7 +162,7 @@ def main() -> None:
     r.add_argument("--modes", default="object-only,full-image")
     a = ap.parse_args()
     if a.cmd == "export":
-        export(a.scenes.split(","), Path(a.out), a.views, a.size)
+        export(a.scenes.split(","), Path(a.out), a.views, a.size, a.shade_subsamples)
     else:
         run(Path(a.data), a.budget, a.max_gaussians, a.cpu_steps,
             Path(a.out) if a.out else None, [x for x in a.scenes.split(",") if x],
