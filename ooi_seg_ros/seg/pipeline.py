@@ -300,14 +300,23 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         w = stability_warning(st, len(cloud))
         if w and cfg.stability.resolve and st["flip_scales"] and cfg.noise.method == "dbscan":
             local = np.nonzero(np.isin(noise_in, sel))[0]
-            k, st["resolved"] = centred_alternative(full.xyz[noise_in], local, st["flip_scales"],
-                                                    cfg.noise, target, radius)
+            k, st["resolved"] = centred_alternative(
+                full.xyz[noise_in], local, st["flip_scales"], cfg.noise, target, radius,
+                rgb=full.rgb[noise_in] if full.rgb is not None else None,
+                alike=cfg.stability.alike_colour)
+            cands = st["resolved"]["candidates"]
             if st["resolved"]["chosen_scale"] is not None:
                 sel = noise_in[k]
                 cloud = full.subset(sel)
                 stage_clouds["stability"] = (cloud.xyz, cloud.rgb)
-                w += (f"; kept instead the better-centred choice of a re-run ({len(cloud)} "
-                      f"points, eps {st['resolved']['chosen_scale']} spacings)")
+                why = ("its further points look like this one's: the rest of the object"
+                       if cands[0][3] != "-" else "better centred on the cameras' "
+                       "convergence point")
+                w += (f"; kept instead the choice of a re-run ({len(cloud)} points, eps "
+                      f"{st['resolved']['chosen_scale']} spacings; {why})")
+            elif any(c[3] is None for c in cands[1:]):
+                w += ("; kept this one (a re-run chose a part of it whose colours match the "
+                      "rest)")
             else:
                 w += "; kept this one (better centred on the cameras' convergence point)"
         counts["stability"] = int(len(cloud))

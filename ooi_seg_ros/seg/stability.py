@@ -20,24 +20,32 @@ With ``resolve`` (default) a flip also gets a tie-break: the noise stage's DBSCA
 runs on the whole cloud's noise input at the eps scale each flipped copy stopped at, and of
 those sets and the original choice the one whose box is best centred on the cameras'
 convergence point is kept -- the premise the ROI and the central cluster already use: the
-orbit frames its object, and a neighbour beside it pulls the box off centre. Measured on 726
-clouds (the 66 simulator SfM clouds and 10 copies of each with 10% of the points left out):
-it changed 10, all from a wrong OOI cloud to a right one, and made none wrong. Where it cannot
-help: a fragment of the object that lies nearer the convergence point than the whole object's
-box centre (tabletop seed 7 with ``epipolar_band_matching``) is kept. Stable captures (no
-flip) are never touched.
+orbit frames its object, and a neighbour beside it pulls the box off centre. A candidate
+that lies inside a larger one whose further points have the same colours (``alike_colour``)
+is a fragment of that one's object, not a choice of its own: the centring cannot tell a part
+of the object that happens to sit nearer the convergence point (tabletop seed 7 with
+``epipolar_band_matching``) from the object without its neighbour, the colours can (same
+object 0.8-1.2 times the object's own colour spacing, the toy car's clutter 3.9-28; session
+15). Measured on 726 clouds (the 66 simulator SfM clouds and 10 copies of each with 10% of
+the points left out; the flags fall on tabletop and toy car clouds and on one bicycle copy):
+with 10 draws and the colour rule the tie-break changed 13, all from a wrong OOI cloud to a
+right one, and made none wrong; wrong OOI clouds 8 -> 1 (default SfM) and 9 -> 3 (band SfM;
+no re-run flags three copies of toy car 4). Session 14's 5 draws with the centring alone:
+8 -> 3 and 9 -> 4; 10 draws with the centring alone broke one (a same-coloured fragment,
+tabletop 1). Stable captures (no flip) are never touched.
 
-Cost: ``draws`` more runs of the point stages (0.23-0.42 s in all on the simulator's clouds;
-8.6 s on the bonsai's 97k points, next to the 149 s of its masks). Clouds with
+Cost: ``draws`` more runs of the point stages (about 0.05-0.08 s each on the simulator's
+clouds; 1.7 s each on the bonsai's 97k points, next to the 149 s of its masks). Clouds with
 more than ``max_points`` points are checked on a random ``max_points`` of them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .density import spacing
 from .noise import NoiseConfig, _dbscan_at, _off_centre
@@ -47,7 +55,7 @@ from .noise import NoiseConfig, _dbscan_at, _off_centre
 class StabilityConfig:
     """Options of the OOI-cloud stability check (a warning only; the cloud is not changed)."""
 
-    draws: int = 5  # copies of the cloud to re-run the point stages on (0 = no check)
+    draws: int = 10  # copies of the cloud to re-run the point stages on (0 = no check)
     drop: float = 0.1  # share of the points each copy leaves out at random
     min_jaccard: float = 0.8  # a copy whose OOI set has a lower Jaccard index with the
     # whole cloud's (over the points both hold) is a flip
@@ -55,6 +63,9 @@ class StabilityConfig:
     resolve: bool = True  # after a flip, keep whichever of the whole cloud's choice and the
     # flipped copies' (the noise stage on the whole input at their eps scale) is best centred
     # on the cameras' convergence point (see centred_alternative; measured, BENCHMARKS)
+    alike_colour: float = 2.0  # in that tie-break, a candidate inside a larger one whose
+    # further points' colours are this alike (colour_ratio below it; ~1 = the same colours,
+    # 0 = off) is a fragment of the larger one's object and is not chosen over it
 
 
 def stability_check(n: int, chosen: np.ndarray,
@@ -100,27 +111,71 @@ def stability_check(n: int, chosen: np.ndarray,
     return out
 
 
+def colour_ratio(core: np.ndarray, extra: np.ndarray) -> float:
+    """How unlike the colours ``extra`` [M,3] are to the colours ``core`` [N,3]: the median
+    distance (RGB) from an extra point's colour to its nearest core colour, over the median
+    distance from a core colour to its nearest other core colour. About 1 when the extra
+    points look like a sample of the core's colours; inf without colour information (fewer
+    than 2 core points, no extra points, or a core of one exact colour)."""
+    core = np.asarray(core, float)
+    extra = np.asarray(extra, float)
+    if len(core) < 2 or len(extra) == 0:
+        return float("inf")
+    tree = cKDTree(core)
+    own = float(np.median(tree.query(core, k=2)[0][:, 1]))
+    if own <= 1e-9:
+        return float("inf")
+    return float(np.median(tree.query(extra, k=1)[0])) / own
+
+
 def centred_alternative(xyz: np.ndarray, chosen: np.ndarray, scales: list,
-                        noise_cfg: NoiseConfig, target: np.ndarray, radius: float
+                        noise_cfg: NoiseConfig, target: np.ndarray, radius: float,
+                        rgb: Optional[np.ndarray] = None, alike: float = 0.0
                         ) -> tuple[np.ndarray, dict]:
     """The tie-break ``resolve`` applies after flips: of the noise stage's choice
     ``chosen`` (indices into its input ``xyz``) and the sets its DBSCAN selection gives on
     the same input at the eps scales the flipped copies stopped at, the one whose box is best
     centred on the cameras' convergence point (``noise._off_centre``: the orbit frames its
-    object). Returns (indices, {"candidates": [[scale or None, points, off-centre]],
-    "chosen_scale"})."""
+    object).
+
+    With point colours ``rgb`` and ``alike`` > 0, a candidate that is (95% or more) inside a
+    larger candidate whose further points look like it (``colour_ratio`` < ``alike``) is a
+    fragment of that one's object and not a choice: the larger one stands in for it. This
+    stops the centring from trading the whole object for a part of it that happens to sit
+    nearer the convergence point (BENCHMARKS, session 15); a neighbour whose colours differ
+    from the object's is still left to the centring.
+
+    Returns (indices, {"candidates": [[scale or None, points, off-centre, scale of the
+    candidate it is a fragment of, or "-"]], "chosen_scale"})."""
     sp = spacing(xyz, noise_cfg.min_samples)
-    best = (np.asarray(chosen, np.int64), None, _off_centre(xyz[chosen], target))
-    cands = [[None, int(len(chosen)), round(best[2], 4)]]
+    sets = [(None, np.asarray(chosen, np.int64))]
     for sc in sorted(set(scales)):
         k, _ = _dbscan_at(xyz, noise_cfg, target, radius, sc * sp, sp)
-        if len(k) < 4:
-            continue
-        off = _off_centre(xyz[k], target)
-        cands.append([sc, int(len(k)), round(off, 4)])
-        if off < best[2]:
-            best = (k, sc, off)
-    return best[0], {"candidates": cands, "chosen_scale": best[1]}
+        if len(k) >= 4:
+            sets.append((sc, np.asarray(k, np.int64)))
+    offs = [_off_centre(xyz[k], target) for _, k in sets]
+    part_of: list = ["-"] * len(sets)
+    if rgb is not None and alike > 0 and len(rgb) == len(xyz):
+        rgb = np.asarray(rgb, float)
+        for i, (_, a) in enumerate(sets):
+            for j, (scj, b) in enumerate(sets):
+                if len(b) <= len(a):
+                    continue
+                inside = np.isin(a, b)
+                if inside.mean() < 0.95:
+                    continue
+                extra = b[~np.isin(b, a)]
+                if colour_ratio(rgb[a], rgb[extra]) < alike:
+                    part_of[i] = scj
+                    break
+    best = 0
+    for i in range(1, len(sets)):
+        if part_of[i] == "-" and (part_of[best] != "-" or offs[i] < offs[best]):
+            best = i
+    if part_of[best] != "-":  # every candidate a fragment of another: keep the largest
+        best = int(np.argmax([len(k) for _, k in sets]))
+    cands = [[sc, int(len(k)), round(o, 4), p] for (sc, k), o, p in zip(sets, offs, part_of)]
+    return sets[best][1], {"candidates": cands, "chosen_scale": sets[best][0]}
 
 
 def stability_warning(check: dict, n_chosen: int) -> str:
