@@ -123,6 +123,9 @@ def _load(path: Path) -> tuple[Capture, SfmCloud]:
     return Capture(views), cloud
 
 
+CACHE_BASELINE = {"epipolar_band_matching": False}  # SfM defaults of the v2 cache's clouds
+
+
 def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source: str,
               cache: Path, refresh: bool = False,
               sfm_set: Optional[dict] = None) -> tuple[Capture, SfmCloud, dict]:
@@ -132,9 +135,13 @@ def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source
     """
     from ooi_seg_ros.sfm.pipeline import SfmConfig, reconstruct
     from ooi_seg_ros.sfm.incremental import IncrementalConfig
-    tag = ""
-    if sfm_set:
-        tag = "_" + "_".join(f"{k}-{v}" for k, v in sorted(sfm_set.items()))
+    # cache names record how the effective SfM options differ from those the v2 cache was
+    # made with (band matching off then), so a changed default never reads stale clouds
+    from dataclasses import asdict
+    eff = asdict(IncrementalConfig(**(sfm_set or {})))
+    base = dict(asdict(IncrementalConfig()), **CACHE_BASELINE)
+    diff = {k: v for k, v in eff.items() if base.get(k) != v}
+    tag = "_" + "_".join(f"{k}-{v}" for k, v in sorted(diff.items())) if diff else ""
 
     def sfm_config(**kw) -> SfmConfig:
         return SfmConfig(incremental=IncrementalConfig(**(sfm_set or {})), progress=False, **kw)

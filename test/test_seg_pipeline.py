@@ -180,8 +180,9 @@ def test_keep_discs_only_adds_pixels_that_join_the_mask(aircraft):
     SfM clouds in benchmarks/bench_seg_quality.py (BENCHMARKS.md, session 10)."""
     sim, cloud = aircraft
     assert make_config("ours").refine.plane_check.keep_discs
-    # 12 views 30 deg apart: the neighbours of the plane check lie up to 60 deg away
-    pc = {"max_deg": 65.0, "rank": 2}
+    # 12 views 30 deg apart: the neighbours of the plane check lie up to 60 deg away; the
+    # per-pixel votes (which only remove pixels, tested above) off to see keep_discs alone
+    pc = {"max_deg": 65.0, "rank": 2, "pixel_votes": False}
     base = {"refine": {"hull_add": False, "edge_window": 0, "plane_check": pc}}
     with_keep = segment(sim.capture, cloud, make_config("ours", base))
     off = {"refine": dict(base["refine"], plane_check=dict(pc, keep_discs=False))}
