@@ -605,3 +605,15 @@ def test_pixel_floor_leaves_the_mask_only_where_colour_says_ground():
     assert out[10:12, 10:30].all() and out[12:30, 10:15].all()  # the frame stayed
     assert not (out & ~res).any()  # only removes
     assert _drop_pixel_floor(res, None, ground, img, 0, sure) is res
+    # specks: grass-coloured single pixels inside the frame that the votes call floor leave
+    # without min_region, and stay with it; the see-through grass (a large region) leaves
+    # either way, as does a speck on the mask's edge (it touches the outside)
+    img2 = img.copy()
+    for y, x in ((13, 13), (27, 26), (10, 20)):
+        img2[y, x] = (60, 140, 50)
+        pixel[y, x] = True
+    loose = _drop_pixel_floor(res, pixel, ground, img2, 0, sure)
+    kept = _drop_pixel_floor(res, pixel, ground, img2, 0, sure, min_region=9)
+    assert not loose[13, 13] and not loose[27, 26]
+    assert kept[13, 13] and kept[27, 26] and not kept[10, 20]
+    assert not kept[15:25, 15:25][~sure[15:25, 15:25]].any()

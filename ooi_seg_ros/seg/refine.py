@@ -245,7 +245,7 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         if floor is not None and floor.cfg.pixel_votes:
             res = _drop_pixel_floor(res, floor.pixel_floor.get((j, tuple(box))), fl_full,
                                     v.get_image()[box[0]:box[1], box[2]:box[3]], j,
-                                    fg_seed & ~bg_seed)
+                                    fg_seed & ~bg_seed, floor.cfg.min_region)
         a0, a1 = ref_area, res.sum()
         if abs(a1 - a0) > cfg.max_area_change * a0:
             rejected += 1
@@ -259,11 +259,14 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
 
 
 def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.ndarray,
-                      img: np.ndarray, seed: int, sure: np.ndarray) -> np.ndarray:
+                      img: np.ndarray, seed: int, sure: np.ndarray,
+                      min_region: int = 1) -> np.ndarray:
     """``res`` without the pixels the per-pixel plane votes call floor (``pixel_votes``)
     whose chromaticity also votes ground: k-NN against the rest of ``res`` and the floor the
     plane check found outside it (the crop's background when that is under 50 px). The
-    sure-object seeds (``sure``, where OOI points project) stay."""
+    sure-object seeds (``sure``, where OOI points project) stay, and so do removals smaller
+    than ``min_region`` px that do not touch the mask's outside: specks inside the object
+    (on the real bonsai they fell on the pot, the stand and the crown, session 15)."""
     if pixel is None or not pixel.any():
         return res
     if pixel.shape != res.shape:
@@ -278,6 +281,16 @@ def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.n
     bg = (ground | pixel) & ~res
     out = res.copy()
     out[cand] = chroma_vote(img, res & ~cand, bg if bg.sum() >= 50 else ~res, cand, seed)
+    gone = res & ~out
+    if min_region > 1 and gone.any():
+        lab, n = ndimage.label(gone, np.ones((3, 3), bool))
+        size = np.bincount(lab.ravel(), minlength=n + 1)
+        outside = ndimage.binary_dilation(~res, np.ones((3, 3), bool), border_value=1)
+        touches = np.zeros(n + 1, bool)
+        touches[np.unique(lab[gone & outside])] = True
+        back = (size < min_region) & ~touches
+        back[0] = False
+        out |= back[lab]
     return out
 
 
