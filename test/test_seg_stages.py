@@ -617,3 +617,36 @@ def test_pixel_floor_leaves_the_mask_only_where_colour_says_ground():
     assert not loose[13, 13] and not loose[27, 26]
     assert kept[13, 13] and kept[27, 26] and not kept[10, 20]
     assert not kept[15:25, 15:25][~sure[15:25, 15:25]].any()
+
+
+def _cylinder(n: int, r: float, z0: float, z1: float, c=(0.0, 0.0), seed: int = 0
+              ) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    a, rr = rng.uniform(0, 2 * np.pi, n), r * np.sqrt(rng.uniform(0, 1, n))
+    return np.c_[c[0] + rr * np.cos(a), c[1] + rr * np.sin(a), rng.uniform(z0, z1, n)]
+
+
+def test_widening_joins_a_part_held_up_by_the_object_not_a_neighbour_on_the_support():
+    """A bonsai's crown over its pot (a sparse trunk between) joins with a jump in extent and
+    pulls the box off the convergence point, as a neighbour would; it floats above the pot's
+    foot, where a neighbour stands on the support plane (the 58-view real bonsai, session 16)."""
+    pot = _cylinder(1500, 0.15, 0.0, 0.2, seed=1)
+    crown = _sphere(1500, r=0.25, c=(0.2, 0, 0.51), seed=2)  # lowest points at z 0.26
+    neighbour = _cylinder(1500, 0.15, 0.0, 0.2, c=(0.35, 0), seed=3)  # on the support, beside
+    up = np.array([0.0, 0.0, 1.0, 0.0])  # the support plane z = 0, normal towards the cameras
+    target = np.array([0.0, 0.0, 0.1])
+    base = dict(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=4.0,
+                settle_change=0.15, max_extent_growth=1.25)
+    held, off = NoiseConfig(**base, part_above=0.25), NoiseConfig(**base)
+    xyz = np.vstack([pot, crown])
+    k_off, p_off = noise_filter(xyz, off, target, 2.0, up)
+    assert (k_off >= 1500).sum() == 0 and "stopped_at_scale" in p_off  # refused as a neighbour
+    k, p = noise_filter(xyz, held, target, 2.0, up)
+    assert (k >= 1500).sum() > 1400 and (k < 1500).sum() > 1400 and p["parts_held_up_at"]
+    assert (noise_filter(xyz, held, target, 2.0)[0] >= 1500).sum() == 0  # no plane: no rule
+    # the held-up groups must be a part's size, not a neighbour's top (here: 2x the pot's)
+    small = NoiseConfig(**base, part_above=0.25, part_min_points=2.0)
+    assert (noise_filter(xyz, small, target, 2.0, up)[0] >= 1500).sum() == 0
+    xyz2 = np.vstack([pot, neighbour])
+    k2, p2 = noise_filter(xyz2, held, target, 2.0, up)
+    assert (k2 >= 1500).sum() == 0 and (k2 < 1500).sum() > 1400 and "stopped_at_scale" in p2

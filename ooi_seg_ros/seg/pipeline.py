@@ -82,7 +82,8 @@ def preset(method: str) -> dict:
                 "floor": {"mode": "support"},
                 "noise": {"method": "dbscan", "select": "central", "eps_scale": 1.0,
                           "eps_step": 0.25, "eps_max_scale": 4.0, "settle_change": 0.15,
-                          "max_extent_growth": 1.25, "merge_reach_scale": 1.2},
+                          "max_extent_growth": 1.25, "merge_reach_scale": 1.2,
+                          "part_above": 0.25},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
                           "splat_scale": 0.6, "hull_consistency": False,
@@ -159,13 +160,20 @@ def _point_stages(cfg: SegmentationConfig, views: list, target: np.ndarray, radi
     if cfg.roi.enabled:
         stages.append(("roi", lambda x: roi_filter(x, views, target, cfg.roi)))
     order = ["floor", "density"] if cfg.method == "ours" else ["density", "floor"]
+    found: dict = {}  # the support plane of the current run, for the noise stage
+
+    def floor(x):
+        keep, p = floor_filter(x, cfg.floor, cam_centers, cam_up, target)
+        found["plane"] = p.get("support_plane")
+        return keep, p
+
     for name in order:
         if name == "density":
             stages.append(("density", lambda x: density_filter(x, cfg.density)))
         else:
-            stages.append(("floor", lambda x: floor_filter(x, cfg.floor, cam_centers, cam_up,
-                                                           target)))
-    stages.append(("noise", lambda x: noise_filter(x, cfg.noise, target, radius)))
+            stages.append(("floor", floor))
+    stages.append(("noise", lambda x: noise_filter(x, cfg.noise, target, radius,
+                                                   found.get("plane"))))
     return stages
 
 
