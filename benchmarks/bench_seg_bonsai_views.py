@@ -12,6 +12,7 @@ and stand region; a small one is a fragment (look at the masks: ``ooi-seg segmen
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_bonsai_views.py \\
         --steps 1 3 4 5 6 8 10 --set 'pa0={"noise": {"part_above": 0.0}}'
+    # other subsets of the same sizes: --steps 4 5 6 8 --offsets 1 2 3
 """
 
 from __future__ import annotations
@@ -30,14 +31,14 @@ sys.path.insert(0, str(ROOT))
 BONSAI = ROOT.parent / "shared" / "data" / "mipnerf360-bonsai"
 
 
-def subset_model(src: Path, dst: Path, step: int) -> int:
+def subset_model(src: Path, dst: Path, step: int, offset: int = 0) -> int:
     """Write ``dst`` (images/ as links, sparse/0) keeping every ``step``-th registered image
-    by name; returns the number kept."""
+    by name, from the ``offset``-th on; returns the number kept."""
     import pycolmap
     rec = pycolmap.Reconstruction(str(src / "sparse" / "0"))
     ids = sorted((i for i in rec.images if rec.images[i].has_pose),
                  key=lambda i: rec.images[i].name)
-    keep = set(ids[::step])
+    keep = set(ids[offset::step])
     for i in ids:
         if i not in keep:
             rec.deregister_frame(rec.images[i].frame_id)
@@ -56,6 +57,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=BONSAI)
     ap.add_argument("--steps", type=int, nargs="+", default=[1, 3, 4, 5, 6, 8, 10])
+    ap.add_argument("--offsets", type=int, nargs="+", default=[0],
+                    help="first photo kept (0..step-1): other subsets of the same size")
     ap.add_argument("--set", action="append", default=[],
                     help='extra variant "name={json overrides of ours}" (repeatable)')
     args = ap.parse_args(argv)
@@ -68,13 +71,13 @@ def main(argv=None) -> int:
     for s in args.set:
         name, _, js = s.partition("=")
         variants.append((name, json.loads(js)))
-    print(f"{'views':>5} {'variant':>10} {'density':>7} {'noise':>6} {'OOI':>6} "
+    print(f"{'views':>5} {'first':>5} {'variant':>10} {'density':>7} {'noise':>6} {'OOI':>6} "
           f"{'settled':>7} {'stopped':>7} {'joined':>12} {'held up':>8} {'flips':>5} "
           f"{'copies (points)':>18} {'s':>5}")
     with tempfile.TemporaryDirectory() as tmp:
-        for step in args.steps:
-            d = Path(tmp) / f"every{step}"
-            n = subset_model(args.data, d, step)
+        for step, off in [(st, o) for st in args.steps for o in args.offsets if o < st]:
+            d = Path(tmp) / f"every{step}_{off}"
+            n = subset_model(args.data, d, step, off)
             cap, cloud = read_capture_and_cloud(d, downscale=4)
             for name, over in variants:
                 cfg = make_config("ours", over)
@@ -85,8 +88,9 @@ def main(argv=None) -> int:
                 dt = time.perf_counter() - t0
                 p, st = r.params["noise"], r.params.get("stability", {})
                 sizes = st.get("sizes") or [0]
-                print(f"{n:>5} {name:>10} {r.counts['density']:>7} {r.counts['noise']:>6} "
-                      f"{len(r.ooi_cloud):>6} {str(p.get('settled_at_scale', '-')):>7} "
+                print(f"{n:>5} {off:>5} {name:>10} {r.counts['density']:>7} "
+                      f"{r.counts['noise']:>6} {len(r.ooi_cloud):>6} "
+                      f"{str(p.get('settled_at_scale', '-')):>7} "
                       f"{str(p.get('stopped_at_scale', '-')):>7} "
                       f"{str(p.get('parts_joined_at', '-')):>12} "
                       f"{str(p.get('parts_held_up_at', '-')):>8} {st.get('flips', 0):>5} "
