@@ -2,8 +2,9 @@
 
 INPUT is a COLMAP model folder (``sparse/0`` + ``images``, or a sparse folder with
 ``--images``), a dataset folder or bag readable by ``ooi_seg_ros.capture_io`` (SfM runs when it
-has no cloud), or ``sim:SCENE[:SEED]`` (a simulator capture with a depth-proxy cloud, for
-demos and tests).
+has no cloud; a folder of photos without poses is mapped by pycolmap, which estimates them, and
+images it cannot register get no mask and a warning), or ``sim:SCENE[:SEED]`` (a simulator
+capture with a depth-proxy cloud, for demos and tests).
 """
 
 from __future__ import annotations
@@ -92,12 +93,23 @@ def load_input(args) -> tuple:
     info["kind"] = "capture"
     if cloud is None or len(cloud) == 0:
         try:
-            from .. import sfm
-            cloud = sfm.run_sfm(cap)  # type: ignore[attr-defined]
-        except (ImportError, AttributeError):
+            from ..sfm.pipeline import reconstruct
+        except ImportError:
             raise InputError(f"{src} has no SfM cloud and the SfM module cannot run here; "
                              f"run `ooi-seg sfm` first") from None
+        sfm_cap, cloud, _ = reconstruct(cap)
         info["cloud"] = "sfm"
+        if not cap.has_poses:
+            # photos without poses: the mapping estimated them, for the views it registered
+            missing = sorted({v.key for v in cap.views} - {v.key for v in sfm_cap.views})
+            info["cloud"] = "sfm (poses estimated by mapping)"
+            if missing:
+                info["views_not_registered"] = missing
+                info["warnings"] = [
+                    f"input: {len(missing)} of {len(cap.views)} images were not registered "
+                    f"by the mapping and get no mask ({', '.join(missing[:5])}"
+                    f"{', ...' if len(missing) > 5 else ''})"]
+            cap = sfm_cap
     return cap, cloud, info
 
 
@@ -113,6 +125,7 @@ def run(args) -> int:
     t_load = time.perf_counter() - t0
     result = segment(cap, cloud, cfg)
     result.timings["load"] = t_load
+    result.warnings[:0] = info.pop("warnings", [])
     info["views"] = len(cap.views)
     info["image_keys"] = [v.key for v in cap.views]
     info["image_sources"] = [v.source for v in cap.views]
