@@ -24,6 +24,14 @@ def test_ours_beats_paper_on_sim(aircraft):
     assert not ours.warnings
 
 
+def test_an_ooi_of_few_points_warns(aircraft):
+    sim, cloud = aircraft
+    r = segment(sim.capture, cloud, make_config("ours", {"min_ooi_points": 10 ** 6,
+                                                         "refine": {"enabled": False}}))
+    assert any(w.startswith(f"only {len(r.ooi_cloud)} SfM points form the OOI")
+               for w in r.warnings)
+
+
 def test_on_cloud_sees_the_final_ooi_cloud_before_the_masks(aircraft):
     sim, cloud = aircraft
     seen = []
