@@ -453,3 +453,24 @@ def test_bundle_adjustment_of_points_keeps_the_cloud_consistent(built):
     # the Gauss-Newton refinement of the incremental path already sits at the BA optimum
     assert np.median(np.linalg.norm(ba.xyz - cloud.xyz, axis=1)) < 1e-3
     np.testing.assert_array_equal(ba.obs_view, cloud.obs_view)
+
+
+def test_path_jump_finds_a_block_of_cameras_registered_elsewhere():
+    """Photos of an orbit in name order step evenly; a block the mapping put in the wrong
+    place (17 of the real bonsai's 58 bare photos, session 16) jumps at its ends."""
+    from ooi_seg_ros.core.geometry import look_at
+    from ooi_seg_ros.core.types import CameraIntrinsics, Capture, View
+    from ooi_seg_ros.sfm.pipeline import SfmConfig, path_jump
+    cam = CameraIntrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    views = []
+    for k in range(40):
+        a = 2 * np.pi * k / 40
+        eye = np.array([3 * np.cos(a), 3 * np.sin(a), 1.5])
+        views.append(View(f"img{k:03d}", k, cam, look_at(eye, np.zeros(3))))
+    ratio, _ = path_jump(Capture(views))
+    assert ratio < 1.5
+    moved = [View(v.key, v.stamp_ns, v.camera,
+                  look_at(v.pose.t + np.array([0, 0, 4.0]) if 10 <= k < 20 else v.pose.t,
+                          np.zeros(3))) for k, v in enumerate(views)]
+    ratio, key = path_jump(Capture(moved))
+    assert ratio > SfmConfig().max_path_step_ratio and key in ("img010", "img020")

@@ -97,15 +97,17 @@ def load_input(args) -> tuple:
         except ImportError:
             raise InputError(f"{src} has no SfM cloud and the SfM module cannot run here; "
                              f"run `ooi-seg sfm` first") from None
-        sfm_cap, cloud, _ = reconstruct(cap)
+        sfm_cap, cloud, sfm_report = reconstruct(cap)
         info["cloud"] = "sfm"
+        if sfm_report.get("warning"):
+            info.setdefault("warnings", []).append(f"sfm: {sfm_report['warning']}")
         if not cap.has_poses:
             # photos without poses: the mapping estimated them, for the views it registered
             missing = sorted({v.key for v in cap.views} - {v.key for v in sfm_cap.views})
             info["cloud"] = "sfm (poses estimated by mapping)"
             if missing:
                 info["views_not_registered"] = missing
-                info["warnings"] = [
+                info["warnings"] = info.get("warnings", []) + [
                     f"input: {len(missing)} of {len(cap.views)} images were not registered "
                     f"by the mapping and get no mask ({', '.join(missing[:5])}"
                     f"{', ...' if len(missing) > 5 else ''})"]

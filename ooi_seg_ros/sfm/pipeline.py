@@ -40,6 +40,9 @@ class SfmConfig:
     # while k is matched; same cloud, ~max instead of sum of the two costs): 0 = serial,
     # -1 = 1 where 2+ CPU cores are usable, else 0
     features_ahead: int = 2  # keyframes extracted ahead at most (bounds the images in flight)
+    max_path_step_ratio: float = 5.0  # unknown poses: warn when consecutive photos' estimated
+    # cameras (name order) step more than this x the median step (a block registered in the
+    # wrong place; see path_jump)
 
 
 class Progress:
@@ -176,12 +179,24 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
         if tmp is not None:
             tmp.cleanup()
     report["mapping"] = stats
+    msgs = []
     if stats["registered_images"] < 0.5 * len(capture.views):
-        msg = (f"only {stats['registered_images']}/{len(capture.views)} images registered; "
-               "use larger images (less --downscale) or a capture with more overlap")
+        msgs.append(f"only {stats['registered_images']}/{len(capture.views)} images "
+                    "registered; use larger images (less --downscale) or a capture with more "
+                    "overlap")
+    jump = path_jump(cap)
+    report["camera_path_max_step_ratio"] = jump[0]
+    if jump[0] > cfg.max_path_step_ratio:
+        msgs.append(f"the estimated cameras jump along the photos' order: {jump[1]} is "
+                    f"{jump[0]:.1f}x the median step from the photo before it; if the photos "
+                    "were taken in name order along one path, part of the capture was "
+                    "registered in the wrong place (its own reprojection error does not show "
+                    "this) -- check the cameras in the SfM output, or add photos between")
+    for msg in msgs:
         LOG.warning(msg)
         print(f"[sfm] warning: {msg}", file=sys.stderr)
-        report["warning"] = msg
+    if msgs:
+        report["warning"] = "; ".join(msgs)
     report["times_s"].update({f"{k}_s": v for k, v in stats["times_s"].items()})
     report["keyframe_selection"] = {"frames_seen": len(capture.views),
                                     "keyframes": stats["registered_images"],
@@ -189,6 +204,24 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
                                                 - stats["registered_images"]}}
     report.update(summarize(cloud))
     return cap, cloud, report
+
+
+def path_jump(capture: Capture) -> tuple[float, Optional[str]]:
+    """The largest step between the camera centres of consecutive views (in key order, i.e.
+    photo-name order), over the median step, and the key of the view it lands on. An orbit or
+    a sweep photographed in order moves by similar steps (the real bonsai's reference model:
+    at most 2.6x, across three missing photos); a block of photos the mapping put in the wrong
+    place shows as steps of 8-13x at its ends (58 of its photos, session 16)."""
+    views = sorted((v for v in capture.views if v.pose is not None), key=lambda v: v.key)
+    if len(views) < 4:
+        return 0.0, None
+    c = np.stack([v.pose.t for v in views])
+    step = np.linalg.norm(np.diff(c, axis=0), axis=1)
+    med = float(np.median(step))
+    if med <= 0:
+        return 0.0, None
+    i = int(np.argmax(step))
+    return float(step[i] / med), views[i + 1].key
 
 
 def summarize(cloud: SfmCloud) -> dict:
