@@ -48,18 +48,51 @@ def test_mapping_without_poses_registers_the_photos(tmp_path):
     assert np.median(err) < 0.02 * radius
 
 
+@pytest.mark.slow
+def test_mapping_rematches_sequentially_after_a_camera_path_jump(tmp_path):
+    """A camera path jump after exhaustive matching makes the mapping match the same features
+    sequentially and map again; with a threshold every path exceeds (0.5x the median step),
+    both models jump, so the one with more photos registered is kept (exhaustive on a tie)."""
+    sim = simulate_capture("tabletop", n_views=16, width=256, height=192, seed=3)
+    img_dir = tmp_path / "images"
+    img_dir.mkdir()
+    for k, v in enumerate(sim.capture.views):
+        Image.fromarray(v.image).save(img_dir / f"{k:03d}.png")
+    cfg = MappingConfig(num_threads=1)
+    cap, cloud, stats = map_image_folder(img_dir, tmp_path / "work", cfg,
+                                         camera=sim.capture.views[0].camera,
+                                         max_step_ratio=0.5)
+    rm = stats["rematch"]
+    n_ex, n_seq = rm["exhaustive"]["registered_images"], rm["sequential"]["registered_images"]
+    assert rm["kept"] == ("sequential" if n_seq > n_ex else "exhaustive")
+    assert len(cap.views) == max(n_ex, n_seq) == stats["registered_images"]
+    assert (tmp_path / "work" / "sparse_sequential").is_dir()
+    assert ("sparse_sequential" in cap.meta["sfm_model_dir"]) == (rm["kept"] == "sequential")
+    assert "matching_rematch" in stats["times_s"]
+    # without the jump (default threshold) nothing is matched twice
+    _, _, plain = map_image_folder(img_dir, tmp_path / "work2", cfg,
+                                   camera=sim.capture.views[0].camera)
+    assert "rematch" not in plain and plain["matching"] == "exhaustive"
+
+
 def test_mapping_rejects_a_folder_without_photos(tmp_path):
     with pytest.raises(InputError, match="at least 2"):
         map_image_folder(tmp_path, tmp_path / "work")
 
 
 @pytest.mark.slow
-def test_segment_cli_on_photos_without_poses(tmp_path):
+def test_segment_cli_on_photos_without_poses(tmp_path, monkeypatch):
     """`ooi-seg segment FOLDER` on bare photos: the mapping's poses reach the segmentation
     (they were dropped once: 'every view needs a pose'), one mask per registered photo, named
     by the photo's stem, and the masks find the object (measured: IoU 0.905, recall 0.978;
-    at 256x192 x 30 the mapping puts no point on the plant, hence this size)."""
+    at 256x192 x 30 the mapping puts no point on the plant, hence this size). The mapping's
+    scratch folder (database and model) is removed afterwards (it was left in /tmp, up to
+    hundreds of MB per run)."""
     import json
+    import tempfile
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     from ooi_seg_ros.cli import main as cli_main
     from ooi_seg_ros.seg.metrics import mask_metrics
     sim = simulate_capture("tabletop", n_views=60, width=320, height=240, seed=2)
@@ -78,3 +111,4 @@ def test_segment_cli_on_photos_without_poses(tmp_path):
     iou, recall = np.mean([x["iou"] for x in m]), np.mean([x["recall"] for x in m])
     assert iou > 0.8 and recall > 0.9, (iou, recall)  # the plant and pot, not the table
     assert rep["counts"]["noise"] > 50
+    assert list(scratch.iterdir()) == []

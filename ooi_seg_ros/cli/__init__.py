@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 
 from ..core.types import OoiSegError
@@ -38,6 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    if not logging.getLogger().handlers:
+        # library warnings (e.g. the SfM's) print once, named, on stderr
+        logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
+                            format="[%(name)s] %(levelname)s: %(message)s")
     try:
         return int(args.func(args) or 0)
     except OoiSegError as exc:

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import logging
+import shutil
 import sys
 import tempfile
 import time
@@ -19,7 +20,7 @@ from ..core.geometry import cameras_convergence_point
 from ..core.types import Capture, InputError, SfmCloud
 from .incremental import IncrementalConfig, IncrementalSfM
 from .keyframes import KeyframeConfig, KeyframeSelector
-from .mapping import MappingConfig, map_image_folder
+from .mapping import MappingConfig, map_image_folder, path_jump  # noqa: F401 (re-export)
 from .prefetch import PipelinedSfM
 
 LOG = logging.getLogger(__name__)
@@ -165,19 +166,25 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
         images_dir = Path(tmp.name)
         for v in capture.views:
             Image.fromarray(v.get_image()).save(images_dir / f"{v.key}.png")
-    work = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="sfm_map_"))
+    own_work = work_dir is None  # a scratch folder of ours: removed when the mapping is read
+    work = Path(tempfile.mkdtemp(prefix="sfm_map_")) if own_work else Path(work_dir)
     try:
         # intrinsics of images that came from a stream/dataset (CameraInfo) are calibrated
         cams = {(v.camera.width, v.camera.height, v.camera.fx, v.camera.fy, v.camera.cx,
                  v.camera.cy) for v in capture.views}
         calibrated = capture.views[0].camera if tmp is not None and len(cams) == 1 else None
-        cap, cloud, stats = map_image_folder(images_dir, work, cfg.mapping, camera=calibrated)
+        cap, cloud, stats = map_image_folder(images_dir, work, cfg.mapping, camera=calibrated,
+                                             max_step_ratio=cfg.max_path_step_ratio)
         if tmp is not None:  # load the images before their temporary folder goes
             for v in cap.views:
                 v.get_image()
+        if own_work:
+            cap.meta.pop("sfm_model_dir", None)
     finally:
         if tmp is not None:
             tmp.cleanup()
+        if own_work:
+            shutil.rmtree(work, ignore_errors=True)
     report["mapping"] = stats
     msgs = []
     if stats["registered_images"] < 0.5 * len(capture.views):
@@ -192,9 +199,8 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
                     "were taken in name order along one path, part of the capture was "
                     "registered in the wrong place (its own reprojection error does not show "
                     "this) -- check the cameras in the SfM output, or add photos between")
-    for msg in msgs:
+    for msg in msgs:  # the CLI prints these once through its logging handler
         LOG.warning(msg)
-        print(f"[sfm] warning: {msg}", file=sys.stderr)
     if msgs:
         report["warning"] = "; ".join(msgs)
     report["times_s"].update({f"{k}_s": v for k, v in stats["times_s"].items()})
@@ -204,24 +210,6 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
                                                 - stats["registered_images"]}}
     report.update(summarize(cloud))
     return cap, cloud, report
-
-
-def path_jump(capture: Capture) -> tuple[float, Optional[str]]:
-    """The largest step between the camera centres of consecutive views (in key order, i.e.
-    photo-name order), over the median step, and the key of the view it lands on. An orbit or
-    a sweep photographed in order moves by similar steps (the real bonsai's reference model:
-    at most 2.6x, across three missing photos); a block of photos the mapping put in the wrong
-    place shows as steps of 8-13x at its ends (58 of its photos, session 16)."""
-    views = sorted((v for v in capture.views if v.pose is not None), key=lambda v: v.key)
-    if len(views) < 4:
-        return 0.0, None
-    c = np.stack([v.pose.t for v in views])
-    step = np.linalg.norm(np.diff(c, axis=0), axis=1)
-    med = float(np.median(step))
-    if med <= 0:
-        return 0.0, None
-    i = int(np.argmax(step))
-    return float(step[i] / med), views[i + 1].key
 
 
 def summarize(cloud: SfmCloud) -> dict:
