@@ -97,7 +97,10 @@ def load_input(args) -> tuple:
         except ImportError:
             raise InputError(f"{src} has no SfM cloud and the SfM module cannot run here; "
                              f"run `ooi-seg sfm` first") from None
-        sfm_cap, cloud, sfm_report = reconstruct(cap)
+        # photos without poses: the estimated cameras are kept in OUT/sparse so that
+        # `ooi-seg train OUT` finds the poses (the photos themselves carry none)
+        keep = None if cap.has_poses else Path(args.out) / "sparse"
+        sfm_cap, cloud, sfm_report = reconstruct(cap, keep_model=keep)
         info["cloud"] = "sfm"
         if sfm_report.get("warning"):
             info.setdefault("warnings", []).append(f"sfm: {sfm_report['warning']}")
@@ -105,6 +108,7 @@ def load_input(args) -> tuple:
             # photos without poses: the mapping estimated them, for the views it registered
             missing = sorted({v.key for v in cap.views} - {v.key for v in sfm_cap.views})
             info["cloud"] = "sfm (poses estimated by mapping)"
+            info["sfm_model"] = str(keep.resolve())
             if missing:
                 info["views_not_registered"] = missing
                 info["warnings"] = info.get("warnings", []) + [

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import dataclasses
 import html
 import io
 import json
@@ -108,6 +109,8 @@ def load_inputs(args: argparse.Namespace) -> tuple[Capture, Optional[dict], Opti
         else:
             capture = _load_capture(str(info["input"]), args.sim_views, args.sim_size,
                                     float(info.get("downscale", 1.0) or 1.0))
+            if info.get("sfm_model"):  # photos without poses: the cameras segment estimated
+                capture = _with_model_poses(capture, Path(info["sfm_model"]))
         masks_dir = masks_dir or src / "masks"
         if init_ply is None and (src / "ooi_points.ply").is_file():
             init_ply = src / "ooi_points.ply"
@@ -140,6 +143,34 @@ def load_inputs(args: argparse.Namespace) -> tuple[Capture, Optional[dict], Opti
     if init_ply is not None:
         pts, cols = _read_points(init_ply)
     return capture, masks, pts, cols
+
+
+def _with_model_poses(capture: Capture, model_dir: Path) -> Capture:
+    """``capture``'s views with the cameras and poses of the COLMAP model ``ooi-seg segment``
+    estimated for them (matched by key = the model image name's stem); views the model did
+    not register keep no pose (training drops and counts them)."""
+    from ..core.types import View
+    from ..sfm.colmap_io import load_colmap_model
+    if not model_dir.is_dir():
+        raise InputError(f"the segment folder's estimated cameras ({model_dir}) are missing; "
+                         "run `ooi-seg segment` again")
+    model, _ = load_colmap_model(model_dir)
+    by_key = {v.key: v for v in model.views}
+    views = []
+    for v in capture.views:
+        m = by_key.get(v.key)
+        if m is None:
+            views.append(View(v.key, v.stamp_ns, v.camera, None, v.image, v.gt_mask, v.loader,
+                              v.source))
+            continue
+        h, w = v.get_image().shape[:2]
+        if (m.camera.width, m.camera.height) != (w, h):
+            raise InputError(f"image {v.key} is {w}x{h} but the segment folder's camera for "
+                             f"it is {m.camera.width}x{m.camera.height}; use the same "
+                             "--downscale as the segment run")
+        views.append(View(v.key, v.stamp_ns, m.camera, m.pose, v.image, v.gt_mask, v.loader,
+                          v.source))
+    return dataclasses.replace(capture, views=views)
 
 
 def _read_points(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:

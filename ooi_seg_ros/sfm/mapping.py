@@ -102,9 +102,22 @@ def map_image_folder(images_dir: str | Path, work_dir: str | Path,
         reader.camera_model = {1: "PINHOLE", 4: "OPENCV", 5: "OPENCV_FISHEYE",
                                6: "FULL_OPENCV"}[model_id]
         reader.camera_params = ",".join(f"{p:.10g}" for p in params)
-    pycolmap.extract_features(db, images_dir, image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=ext, device=pycolmap.Device.cpu)
+    groups = _size_groups(images_dir, names)
+    if len(groups) > 1 and camera is None:
+        # one shared camera drops every photo of another size (pycolmap logs a line and goes
+        # on): portrait and landscape photos mixed, or two cameras -- one camera per size
+        # then (pycolmap's AUTO mode gives every photo its own camera without EXIF focal
+        # lengths, which registered 2 of 16 small photos)
+        stats["cameras"] = {f"{w}x{h}": len(g) for (w, h), g in groups.items()}
+        _progress("photos of {} sizes ({}): one camera per size".format(
+            len(groups), ", ".join(f"{len(g)} at {w}x{h}" for (w, h), g in groups.items())))
+    else:
+        groups = {None: names}
+    for group in groups.values():  # each call makes one camera for its photos
+        pycolmap.extract_features(db, images_dir, image_names=group,
+                                  camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=ext,
+                                  device=pycolmap.Device.cpu)
     stats["times_s"]["features"] = time.perf_counter() - t0
 
     mode = "exhaustive" if len(names) <= cfg.exhaustive_max_images else "sequential"
@@ -117,16 +130,17 @@ def map_image_folder(images_dir: str | Path, work_dir: str | Path,
             _progress(f"the cameras jump along the photos' order ({ratio:.1f}x the median "
                       "step): matching the photos sequentially too")
             again: dict = {"images": len(names), "times_s": {}}
-            db2 = pycolmap.Database.open(str(db))
-            try:
-                db2.clear_matches()
-                db2.clear_two_view_geometries()
-            finally:
-                db2.close()
-            _match(db, cfg, "sequential", again)
-            try:
+            try:  # the exhaustive model is loaded: a failure here only loses the retry
+                db2 = pycolmap.Database.open(str(db))
+                try:
+                    db2.clear_matches()
+                    db2.clear_two_view_geometries()
+                finally:
+                    db2.close()
+                _match(db, cfg, "sequential", again)
                 other = _map(db, images_dir, work_dir / "sparse_sequential", cfg, camera, again)
-            except InputError:
+            except Exception as exc:  # pycolmap raises its own types
+                LOG.warning("sequential re-match failed (%s); keeping the exhaustive model", exc)
                 other = None
             ratio2 = path_jump(other[0])[0] if other is not None else float("inf")
             n1, n2 = len(result[0].views), (len(other[0].views) if other else 0)
@@ -151,6 +165,28 @@ def map_image_folder(images_dir: str | Path, work_dir: str | Path,
                       f"{ratio:.1f}x exhaustive, {ratio2:.1f}x sequential)")
     capture, cloud = result
     return capture, cloud, stats
+
+
+def _size_groups(images_dir: Path, names: list[str]) -> dict:
+    """{(width, height): [photo names of that size]}, largest group first, from the file
+    headers (EXIF rotation is ignored, as pycolmap ignores it). Unreadable files join the
+    first group (pycolmap reports them itself)."""
+    from PIL import Image
+    groups: dict = {}
+    bad = []
+    for n in names:
+        try:
+            with Image.open(images_dir / n) as im:
+                groups.setdefault(im.size, []).append(n)
+        except OSError:
+            bad.append(n)
+    groups = dict(sorted(groups.items(), key=lambda kv: -len(kv[1])))
+    if bad:
+        if not groups:
+            return {None: bad}
+        first = next(iter(groups))
+        groups[first] = sorted(groups[first] + bad)
+    return groups
 
 
 def _match(db: Path, cfg: MappingConfig, mode: str, stats: dict) -> None:

@@ -75,12 +75,15 @@ def _scene_scale(capture: Capture) -> Optional[float]:
 
 
 def reconstruct(capture: Capture, config: Optional[SfmConfig] = None,
-                work_dir: Optional[str | Path] = None) -> tuple[Capture, SfmCloud, dict]:
+                work_dir: Optional[str | Path] = None,
+                keep_model: Optional[str | Path] = None) -> tuple[Capture, SfmCloud, dict]:
     """(Capture of the keyframes with poses, SfmCloud, report) of ``capture``.
 
     Posed captures go through keyframe selection and the known-pose incremental SfM; captures
     without poses through pycolmap mapping of their image folder (``work_dir`` holds its
-    database and model).
+    database and model; ``keep_model``: a folder the chosen COLMAP model -- the estimated
+    cameras and poses -- is copied to, e.g. for a later ``ooi-seg train``; model image names
+    are the views' file names, whose stems are the view keys).
     """
     cfg = config or SfmConfig()
     if len(capture.views) < 2:
@@ -88,7 +91,7 @@ def reconstruct(capture: Capture, config: Optional[SfmConfig] = None,
                          "needs at least 2 overlapping images")
     report: dict = {"input_views": len(capture.views), "times_s": {}}
     if not capture.has_poses:
-        return _reconstruct_unposed(capture, cfg, work_dir, report)
+        return _reconstruct_unposed(capture, cfg, work_dir, report, keep_model)
     # keyframes
     t0 = time.perf_counter()
     sel = KeyframeSelector(cfg.keyframes)
@@ -152,7 +155,8 @@ def _same_size_on_disk(capture: Capture) -> bool:
 
 
 def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[str | Path],
-                         report: dict) -> tuple[Capture, SfmCloud, dict]:
+                         report: dict, keep_model: Optional[str | Path] = None
+                         ) -> tuple[Capture, SfmCloud, dict]:
     srcs = [Path(v.source) for v in capture.views if v.source]
     folders = {p.parent for p in srcs}
     tmp = None
@@ -178,7 +182,13 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
         if tmp is not None:  # load the images before their temporary folder goes
             for v in cap.views:
                 v.get_image()
-        if own_work:
+        if keep_model is not None:
+            keep = Path(keep_model)
+            if keep.exists():
+                shutil.rmtree(keep)
+            shutil.copytree(cap.meta["sfm_model_dir"], keep)
+            cap.meta["sfm_model_dir"] = str(keep)
+        elif own_work:
             cap.meta.pop("sfm_model_dir", None)
     finally:
         if tmp is not None:
