@@ -128,3 +128,22 @@ def test_segment_cli_on_photos_without_poses(tmp_path, monkeypatch):
     trep = json.loads((tout / "report.json").read_text())
     assert trep["n_gaussians"] > 50 and trep["dropped_no_pose"] == 0
     assert (tout / "splats.ply").is_file()
+
+
+@pytest.mark.slow
+def test_segment_and_train_honour_downscale_on_a_bag(tmp_path):
+    """`--downscale` reaches every input kind: segment once read bags and folders at full size
+    (only COLMAP models were scaled) while `train` reloaded them at 1/downscale from
+    input.json, so the masks did not fit the training images."""
+    import json
+    from ooi_seg_ros.capture_io import write_capture_bag
+    from ooi_seg_ros.cli import main as cli_main
+    sim = simulate_capture("aircraft", n_views=30, width=320, height=240, seed=1)
+    bag = write_capture_bag(sim.capture, tmp_path / "cap.mcap")
+    out = tmp_path / "seg"
+    assert cli_main(["segment", str(bag), "--downscale", "2", "--out", str(out)]) == 0
+    sizes = {Image.open(p).size for p in (out / "masks").glob("*.png")}
+    assert sizes == {(160, 120)}
+    tout = tmp_path / "train"
+    assert cli_main(["train", str(out), "--out", str(tout), "--iterations", "5"]) == 0
+    assert json.loads((tout / "report.json").read_text())["n_train"] > 20

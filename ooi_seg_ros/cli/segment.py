@@ -31,7 +31,7 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=None, help="seed of every random step")
     p.add_argument("--images", help="image folder of a COLMAP sparse model")
     p.add_argument("--downscale", type=float, default=1.0,
-                   help="read COLMAP images at 1/downscale resolution")
+                   help="read the images at 1/downscale resolution (any input but sim:)")
     p.add_argument("--sim-views", type=int, default=30, help="views of a sim: input")
     p.add_argument("--sim-size", default="160x120", help="WxH of a sim: input")
     p.set_defaults(func=run)
@@ -89,7 +89,9 @@ def load_input(args) -> tuple:
     except ImportError:
         raise InputError(f"{src} is not a COLMAP model folder, and reading datasets/bags "
                          f"(ooi_seg_ros.capture_io) is not available in this build") from None
-    cap, cloud = read_capture_and_cloud(path)
+    # the same downscale as `train` applies when it reloads this input from input.json (it
+    # was not passed here once: masks at full size, training images at 1/downscale)
+    cap, cloud = read_capture_and_cloud(path, downscale=args.downscale)
     info["kind"] = "capture"
     if cloud is None or len(cloud) == 0:
         try:
