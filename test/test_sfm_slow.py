@@ -147,3 +147,22 @@ def test_segment_and_train_honour_downscale_on_a_bag(tmp_path):
     tout = tmp_path / "train"
     assert cli_main(["train", str(out), "--out", str(tout), "--iterations", "5"]) == 0
     assert json.loads((tout / "report.json").read_text())["n_train"] > 20
+
+
+@pytest.mark.slow
+def test_run_cli_trains_on_photos_without_poses(tmp_path):
+    """`ooi-seg run FOLDER` on bare photos: SfM (mapping), masks and training. The training
+    step reloads the input from the segment folder and once found the bare photos without
+    poses ("no usable training views") while the outputs list named splats it never wrote."""
+    import json
+    from ooi_seg_ros.cli import main as cli_main
+    sim = simulate_capture("tabletop", n_views=48, width=320, height=240, seed=4)
+    img_dir = tmp_path / "photos"
+    img_dir.mkdir()
+    for k, v in enumerate(sim.capture.views):
+        Image.fromarray(v.image).save(img_dir / f"{k:03d}.png")
+    out = tmp_path / "run"
+    assert cli_main(["run", str(img_dir), "--out", str(out), "--iterations", "10"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["train"]["dropped_no_pose"] == 0 and summary["train"]["n_gaussians"] > 20
+    assert (out / "train" / "splats.ply").is_file()

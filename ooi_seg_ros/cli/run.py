@@ -46,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     summary: dict = {"input": str(src.resolve()), "times_s": {}}
+    est_model = None  # the mapping's model, when the photos came without poses
     t0 = time.perf_counter()
 
     print(f"[1/3] reading {src} ...", flush=True)
@@ -62,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
         sfm_cap, cloud, report = reconstruct(capture, cfg, work_dir=out / "sfm" / "mapping")
         if not capture.has_poses:
             capture = sfm_cap  # poses estimated by mapping
+            # for the training step, which reloads the input from the segment folder
+            est_model = sfm_cap.meta.get("sfm_model_dir")
         (out / "sfm").mkdir(parents=True, exist_ok=True)
         write_colmap_model(cloud, out / "sfm" / "sparse")
         write_ply(cloud.xyz, cloud.rgb, out / "sfm" / "sfm_points.ply")
@@ -81,6 +84,9 @@ def run(args: argparse.Namespace) -> int:
             "cloud": "sfm", "views": len(capture.views),
             "image_keys": [v.key for v in capture.views],
             "image_sources": [v.source for v in capture.views]}
+    if est_model:
+        info["cloud"] = "sfm (poses estimated by mapping)"
+        info["sfm_model"] = str(Path(est_model).resolve())
     seg_dir = write_outputs(out / "segment", result, capture, info)
     summary["times_s"]["segment"] = time.perf_counter() - t
     summary["segment"] = {"counts": result.counts, "warnings": result.warnings,
@@ -117,7 +123,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"  object masks:     {seg_dir / 'masks'}/<key>.png")
     print(f"  OOI cloud / mesh: {seg_dir / 'ooi_points.ply'}, {seg_dir / 'ooi_mesh.ply'}")
     print(f"  segmentation:     {seg_dir / 'report.html'}")
-    if not args.skip_train:
+    if not args.skip_train and rc != 0:
+        print("  splats:           none -- training stopped (its error is above)")
+    elif not args.skip_train:
         print(f"  splats:           {out / 'train' / 'splats.ply'}")
         print(f"  training bag:     {out / 'train' / 'training.mcap'}")
         print(f"  training report:  {out / 'train' / 'report.html'}")
