@@ -122,6 +122,9 @@ def test_segment_cli_on_photos_without_poses(tmp_path, monkeypatch):
     assert rep["counts"]["noise"] > 50
     assert list(scratch.iterdir()) == []
     assert (out / "sparse").is_dir()
+    mapping = json.loads((out / "input.json").read_text())["mapping"]
+    assert mapping["registered_images"] == len(masks) and mapping["cameras"] == {
+        "320x240": 54, "240x320": 6}
     # training from the segment folder alone: poses from OUT/sparse, masks, OOI points
     tout = tmp_path / "train"
     assert cli_main(["train", str(out), "--out", str(tout), "--iterations", "20"]) == 0

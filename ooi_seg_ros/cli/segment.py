@@ -111,6 +111,12 @@ def load_input(args) -> tuple:
             missing = sorted({v.key for v in cap.views} - {v.key for v in sfm_cap.views})
             info["cloud"] = "sfm (poses estimated by mapping)"
             info["sfm_model"] = str(keep.resolve())
+            mapping = sfm_report.get("mapping", {})
+            info["mapping"] = {k: mapping[k] for k in (
+                "images", "registered_images", "points", "matching", "rematch", "cameras",
+                "mean_reprojection_error_px", "times_s") if k in mapping}
+            info["mapping"]["camera_path_max_step_ratio"] = sfm_report.get(
+                "camera_path_max_step_ratio")
             if missing:
                 info["views_not_registered"] = missing
                 info["warnings"] = info.get("warnings", []) + [
