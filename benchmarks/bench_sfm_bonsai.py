@@ -75,7 +75,8 @@ def _best_model(sparse: Path) -> Path:
 def subset_runs(out: Path, step: int, runs: int, threads: int) -> int:
     """Map every ``step``-th photo ``runs`` times; compare each model with the reference."""
     from ooi_seg_ros.sfm.colmap_io import load_colmap_model
-    from ooi_seg_ros.sfm.mapping import MappingConfig, map_image_folder, path_jump
+    from ooi_seg_ros.sfm.mapping import (MappingConfig, looking_away, map_image_folder,
+                                         path_jump)
     photos = out / f"images_step{step}"
     photos.mkdir(parents=True, exist_ok=True)
     for k, p in enumerate(sorted((DATA / "images").iterdir())):
@@ -96,8 +97,10 @@ def subset_runs(out: Path, step: int, runs: int, threads: int) -> int:
             res = compare(model, DATA / "sparse" / "0")
             cap, _ = load_colmap_model(model, photos)
             e = res.get("aligned_center_error", {})
-            rows.append({"run": r, "matching": "exhaustive" if name == "sparse" else
+            first = "exhaustive" if n <= MappingConfig().exhaustive_max_images else "sequential"
+            rows.append({"run": r, "matching": first if name == "sparse" else
                          "sequential", "kept": model == kept,
+                         "looking_away": len(looking_away(cap)),
                          "registered": res["ours"]["registered_images"],
                          "path_step_ratio": path_jump(cap)[0],
                          "median_err": e.get("median_frac_of_radius", float("nan")),
@@ -107,10 +110,11 @@ def subset_runs(out: Path, step: int, runs: int, threads: int) -> int:
     print(f"\nevery {step}th photo ({n} photos), {runs} runs; camera-centre error after a "
           "similarity onto the reference, as a fraction of its orbit radius")
     print(f"{'run':>4s} {'matching':>11s} {'kept':>5s} {'registered':>10s} {'path step':>9s} "
-          f"{'median err':>10s} {'max err':>8s} {'run s':>6s}")
+          f"{'away':>5s} {'median err':>10s} {'max err':>8s} {'run s':>6s}")
     for w in rows:
         print(f"{w['run']:4d} {w['matching']:>11s} {'yes' if w['kept'] else '':>5s} "
-              f"{w['registered']:10d} {w['path_step_ratio']:8.1f}x {w['median_err']:10.4f} "
+              f"{w['registered']:10d} {w['path_step_ratio']:8.1f}x {w['looking_away']:5d} "
+              f"{w['median_err']:10.4f} "
               f"{w['max_err']:8.3f} {w['total_s']:6.0f}")
     (out / f"bench_bonsai_step{step}.json").write_text(json.dumps(rows, indent=1))
     return 0

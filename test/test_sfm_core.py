@@ -474,3 +474,21 @@ def test_path_jump_finds_a_block_of_cameras_registered_elsewhere():
                           np.zeros(3))) for k, v in enumerate(views)]
     ratio, key = path_jump(Capture(moved))
     assert ratio > SfmConfig().max_path_step_ratio and key in ("img010", "img020")
+
+
+def test_looking_away_names_cameras_that_lose_the_convergence_point():
+    """Every camera of an orbit frames the point the axes converge on; a camera registered
+    in the wrong place (here: moved across the orbit, still turned as before) does not."""
+    from ooi_seg_ros.core.geometry import look_at
+    from ooi_seg_ros.core.types import CameraIntrinsics, Capture, Pose, View
+    from ooi_seg_ros.sfm.mapping import looking_away
+    cam = CameraIntrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    views = []
+    for k in range(30):
+        a = 2 * np.pi * k / 30
+        eye = np.array([3 * np.cos(a), 3 * np.sin(a), 1.5])
+        views.append(View(f"img{k:03d}", k, cam, look_at(eye, np.zeros(3))))
+    assert looking_away(Capture(views)) == []
+    v = views[7]
+    views[7] = View(v.key, v.stamp_ns, cam, Pose(v.pose.R, -v.pose.t))  # across, same turn
+    assert looking_away(Capture(views)) == ["img007"]

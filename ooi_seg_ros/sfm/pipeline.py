@@ -20,7 +20,7 @@ from ..core.geometry import cameras_convergence_point
 from ..core.types import Capture, InputError, SfmCloud
 from .incremental import IncrementalConfig, IncrementalSfM
 from .keyframes import KeyframeConfig, KeyframeSelector
-from .mapping import MappingConfig, map_image_folder, path_jump  # noqa: F401 (re-export)
+from .mapping import MappingConfig, looking_away, map_image_folder, path_jump  # noqa: F401
 from .prefetch import PipelinedSfM
 
 LOG = logging.getLogger(__name__)
@@ -209,6 +209,14 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
                     "were taken in name order along one path, part of the capture was "
                     "registered in the wrong place (its own reprojection error does not show "
                     "this) -- check the cameras in the SfM output, or add photos between")
+    away = looking_away(cap)
+    report["cameras_looking_away"] = away
+    if away:
+        msgs.append(f"{len(away)} of {len(cap.views)} estimated cameras do not have the point "
+                    f"the cameras converge on in their image ({', '.join(away[:5])}"
+                    f"{', ...' if len(away) > 5 else ''}); if those photos show the object, "
+                    "the mapping registered them in the wrong place and their masks will be "
+                    "wrong -- look at them, or add photos between")
     for msg in msgs:  # the CLI prints these once through its logging handler
         LOG.warning(msg)
     if msgs:
