@@ -156,9 +156,12 @@ def _load_mask(path: Path, size: Optional[tuple[int, int]] = None) -> np.ndarray
 
 
 def _image_files(d: Path) -> list[Path]:
+    """The photos of folder ``d``, by name: image suffixes in any case; hidden files are not
+    photos (macOS writes "._NAME.JPG" metadata beside every photo copied to an SD card)."""
     if not d.is_dir():
         return []
-    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+                  and not p.name.startswith("."))
 
 
 def _rgb_loader(path: Path, size: Optional[tuple[int, int]]):

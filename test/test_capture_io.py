@@ -273,6 +273,12 @@ def test_plain_image_folder(tmp_path):
         capture_io.read_capture(empty)
     with pytest.raises(InputError, match="downscale"):
         capture_io.read_capture(tmp_path, downscale=0.5)
+    # macOS's "._NAME" metadata beside each photo copied to an SD card is not a photo (it
+    # stopped the reading: "cannot identify image file"); suffixes count in any case
+    (tmp_path / "._img0.png").write_bytes(b"\x00\x05\x16\x07 AppleDouble")
+    Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(tmp_path / "img3.TIF")
+    assert [v.key for v in capture_io.read_capture(tmp_path).views] == [
+        "img0", "img1", "img2", "img3"]
 
 
 def test_ply_points_own_and_foreign(tmp_path):

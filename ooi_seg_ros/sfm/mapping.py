@@ -34,8 +34,6 @@ from .colmap_io import load_colmap_model
 
 LOG = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG")
-
 
 @dataclass
 class MappingConfig:
@@ -78,10 +76,11 @@ def map_image_folder(images_dir: str | Path, work_dir: str | Path,
     work_dir = Path(work_dir)
     if not images_dir.is_dir():
         raise InputError(f"{images_dir} is not an image folder")
-    names = sorted(p.name for p in images_dir.iterdir() if p.suffix in IMAGE_SUFFIXES)
+    from ..capture_io import IMAGE_SUFFIXES, _image_files  # the photos the reader takes
+    names = [p.name for p in _image_files(images_dir)]
     if len(names) < 2:
         raise InputError(f"{images_dir} holds {len(names)} images; SfM needs at least 2 "
-                         "overlapping photos (.jpg/.png)")
+                         f"overlapping photos ({'/'.join(IMAGE_SUFFIXES)}, any case)")
     work_dir.mkdir(parents=True, exist_ok=True)
     db = work_dir / "database.db"
     if db.exists():
