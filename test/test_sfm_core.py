@@ -291,6 +291,8 @@ def test_export_roundtrips_through_pycolmap(built, tmp_path):
     assert rec.compute_mean_reprojection_error() == pytest.approx(cloud.error.mean(), rel=1e-3)
     _, back = load_colmap_model(tmp_path / "sparse")
     np.testing.assert_allclose(back.xyz, cloud.xyz, atol=1e-9)
+    with pytest.raises(InputError, match="missing from"):  # a traceback once, late in segment
+        load_colmap_model(tmp_path / "sparse", tmp_path)
     np.testing.assert_allclose(back.obs_xy, cloud.obs_xy, atol=1e-3)
     import open3d as o3d
     write_ply(cloud.xyz, cloud.rgb, tmp_path / "p.ply")
@@ -492,3 +494,14 @@ def test_looking_away_names_cameras_that_lose_the_convergence_point():
     v = views[7]
     views[7] = View(v.key, v.stamp_ns, cam, Pose(v.pose.R, -v.pose.t))  # across, same turn
     assert looking_away(Capture(views)) == ["img007"]
+
+
+def test_colmap_export_names_photos_by_their_file_names():
+    """A model exported from photos names each image by its file, whatever its suffix (.tif
+    and .bmp became "<key>.png", which `segment --images` then could not find)."""
+    from ooi_seg_ros.core.types import CameraIntrinsics, Pose, View
+    from ooi_seg_ros.sfm.export import image_name
+    cam = CameraIntrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    for src, want in (("/p/a.JPG", "a.JPG"), ("/p/b.tif", "b.tif"), ("/p/c.BMP", "c.BMP"),
+                      ("/topic/image", "k.png"), ("", "k.png")):
+        assert image_name(View("k", 0, cam, Pose.identity(), source=src)) == want

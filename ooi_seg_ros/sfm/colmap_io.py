@@ -46,12 +46,18 @@ def camera_from_colmap(cam) -> CameraIntrinsics:
 
 def _pil_loader(path: Path, size: Optional[tuple[int, int]] = None):
     def load() -> np.ndarray:
-        from PIL import Image
-        with Image.open(path) as im:
-            im = im.convert("RGB")
-            if size is not None and im.size != size:
-                im = im.resize(size, Image.Resampling.LANCZOS)
-            return np.asarray(im)
+        from PIL import Image, UnidentifiedImageError
+        try:
+            with Image.open(path) as im:
+                im = im.convert("RGB")
+                if size is not None and im.size != size:
+                    im = im.resize(size, Image.Resampling.LANCZOS)
+                return np.asarray(im)
+        except FileNotFoundError:  # a traceback once; the model names a file not there
+            raise InputError(f"the COLMAP model's image {path.name} is not in {path.parent}; "
+                             "pass --images with the folder of the model's photos") from None
+        except (OSError, UnidentifiedImageError) as exc:
+            raise InputError(f"cannot read image {path} ({exc}); replace or remove it") from exc
     return load
 
 
@@ -88,6 +94,12 @@ def load_colmap_model(sparse_dir: str | Path, images_dir: str | Path | None = No
         index_of[im.image_id] = len(views)
         views.append(View(key=Path(im.name).stem, stamp_ns=len(views), camera=cam, pose=pose,
                           loader=_pil_loader(src, (cam.width, cam.height)), source=str(src)))
+    if images_dir is not None:  # before any work: a missing photo once crashed the masks
+        missing = [v.source for v in views if not Path(v.source).is_file()]
+        if missing:
+            raise InputError(f"{len(missing)} of the COLMAP model's {len(views)} images are "
+                             f"missing from {images_dir} (e.g. {Path(missing[0]).name}); pass "
+                             "--images with the folder of the model's photos")
     pids = sorted(rec.points3D.keys())
     n = len(pids)
     xyz = np.zeros((n, 3))

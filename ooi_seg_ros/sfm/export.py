@@ -51,8 +51,9 @@ def _camera_ids(views: list[View]) -> tuple[list[int], dict[int, CameraIntrinsic
 
 def image_name(view: View) -> str:
     """File name a view gets in the COLMAP model (its source file name when it has one)."""
+    from ..capture_io import IMAGE_SUFFIXES  # any photo the readers take (.tif and .bmp too)
     src = Path(view.source) if view.source else None
-    if src is not None and src.suffix.lower() in (".jpg", ".jpeg", ".png"):
+    if src is not None and src.suffix.lower() in IMAGE_SUFFIXES:
         return src.name
     return f"{view.key}.png"
 
