@@ -179,7 +179,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+",
-                    default=["aircraft", "tabletop", "bicycle", "toycar", "demo"])
+                    default=["aircraft", "tabletop", "bicycle", "toycar", "stool", "demo"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
     ap.add_argument("--views", type=int, default=60)
     ap.add_argument("--size", default="320x240")

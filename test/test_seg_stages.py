@@ -196,6 +196,96 @@ def test_support_band_covers_a_rough_floor_skin():
     assert (keep >= 6000).sum() == 800  # every object point kept
 
 
+def test_skin_end_stops_where_the_depths_below_the_plane_stop_decaying():
+    """A cloth hanging over a table's edge spreads points evenly over depth below the table
+    top: the quantile reads it as skin up to the window's edge, the tail level does not; the
+    object's foot just above the skin then stays. With no such tail it changes nothing."""
+    from ooi_seg_ros.seg.floor import skin_end
+    rng = np.random.default_rng(11)
+    skin = np.abs(rng.normal(0, 0.004, 6000))  # 4 mm skin below a table top
+    assert skin_end(skin, 0.1, 0.005) == 0.1  # no tail: the quantile decides
+    xy = rng.uniform(-1, 1, (6000, 2))
+    top = np.column_stack([xy, rng.normal(0, 0.004, 6000)])
+    ang = rng.uniform(0, 2 * np.pi, 3000)  # the cloth's sides: a cylinder of radius 1.1
+    side = np.column_stack([1.1 * np.cos(ang), 1.1 * np.sin(ang), -rng.uniform(0, 0.5, 3000)])
+    obj = _sphere(800, r=0.3, c=(0, 0, 0.33))  # its lowest points 3 cm above the top
+    xyz = np.vstack([top, side, obj])
+    views = _ring_views()
+    centers = np.array([v.pose.t for v in views])
+    up = -np.mean([v.pose.R[:, 1] for v in views], axis=0)
+    target = np.array([0, 0, 0.33])
+    keep0, p0 = floor_filter(xyz, FloorConfig(mode="support"), centers, up, target)
+    keep1, p1 = floor_filter(xyz, FloorConfig(mode="support", band_tail=True), centers, up,
+                             target)
+    assert p1["band"] < 0.5 * p0["band"]
+    assert (keep1 >= 9000).sum() > (keep0 >= 9000).sum() + 10  # the object's foot stays
+    assert (keep1 < 6000).sum() < 0.02 * 6000  # the table top still goes
+
+
+def _stool_scene(seed=3):
+    """A floor, a cloth-covered stool (top at 0.5 m, textured sides hanging to the floor) and
+    a ball on it whose lowest points are 3 cm above the top."""
+    rng = np.random.default_rng(seed)
+    floor = np.column_stack([rng.uniform(-2, 2, (8000, 2)), rng.normal(0, 0.004, 8000)])
+    hid = np.hypot(floor[:, 0], floor[:, 1]) < 0.41  # under the stool: seen by no camera
+    floor[hid, :2] *= 0.41 / np.hypot(floor[hid, 0], floor[hid, 1])[:, None] + 1.0
+    r = 0.4 * np.sqrt(rng.uniform(0, 1, 2500))
+    a = rng.uniform(0, 2 * np.pi, 2500)
+    top = np.column_stack([r * np.cos(a), r * np.sin(a), 0.5 + rng.normal(0, 0.004, 2500)])
+    a = rng.uniform(0, 2 * np.pi, 2500)
+    side = np.column_stack([0.41 * np.cos(a), 0.41 * np.sin(a), rng.uniform(0.02, 0.5, 2500)])
+    ball = _sphere(800, r=0.15, c=(0, 0, 0.68), seed=seed)
+    views = _ring_views(target=(0, 0, 0.68))
+    centers = np.array([v.pose.t for v in views])
+    up = -np.mean([v.pose.R[:, 1] for v in views], axis=0)
+    return np.vstack([floor, top, side, ball]), centers, up, np.array([0, 0, 0.68])
+
+
+def test_support_is_the_surface_under_the_object_not_the_floor_under_the_stool():
+    """Both the floor and the stool's top lie below the object with the cameras above them;
+    the floor holds more points, the stool's top is the one the object stands on."""
+    from ooi_seg_ros.seg.floor import surround
+    xyz, centers, up, target = _stool_scene()
+    _, most = floor_filter(xyz, FloorConfig(mode="support"), centers, up, target)
+    assert abs(most["support_plane"][3]) < 0.05  # the floor (z = 0)
+    keep, near = floor_filter(xyz, FloorConfig(mode="support", support_select="nearest"),
+                              centers, up, target)
+    assert abs(abs(near["support_plane"][3]) - 0.5) < 0.02  # the stool's top
+    assert [t["surround_sectors"] for t in near["planes_tried"]] == [8, 8]
+    assert (keep < 10500).sum() < 0.02 * 10500  # floor and stool top removed
+    # a plane beside the object (a shelf to one side) does not surround its foot
+    shelf = np.column_stack([np.random.default_rng(0).uniform(1, 2, (500, 2)), np.zeros(500)])
+    assert surround(shelf, np.array([0, 0, 1.0, 0]), target) <= 2
+
+
+def test_a_plane_through_the_object_with_its_support_visible_under_it_is_no_support():
+    """A plane through the object's middle (clutter tops around a toy car) surrounds its
+    foot too, but the cameras see the bench under it; under a stool's top they see nothing."""
+    from ooi_seg_ros.seg.floor import under_interior
+    xyz, centers, up, target = _stool_scene()
+    top = np.array([0, 0, 1.0, -0.5])
+    assert under_interior(xyz, top, target, 0.01, 3.0, 2500) == 0.0
+    rng = np.random.default_rng(1)
+    bench = np.column_stack([rng.uniform(-1, 1, (4000, 2)), np.zeros(4000)])
+    ring = np.column_stack([rng.uniform(-1, 1, (600, 2)), np.full(600, 0.15)])
+    mid = np.array([0, 0, 1.0, -0.15])
+    assert under_interior(np.vstack([bench, ring]), mid, np.array([0, 0, 0.16]), 0.01, 3.0,
+                          600) > 1.0
+
+
+def test_skin_under_the_support_interior_ignores_a_cloth_hanging_at_its_edge():
+    """The cloth's sides below the stool's top are not the top's skin: measured under the
+    top's interior, the band stays thin and the object's foot stays."""
+    xyz, centers, up, target = _stool_scene()
+    cfg = FloorConfig(mode="support", support_select="nearest")
+    k0, p0 = floor_filter(xyz, cfg, centers, up, target)
+    cfg.band_interior = True
+    k1, p1 = floor_filter(xyz, cfg, centers, up, target)
+    assert p1["band"] < 0.5 * p0["band"]
+    assert (k1 >= 13000).sum() > (k0 >= 13000).sum() + 20
+    assert (k1 >= 13000).sum() >= 790
+
+
 def test_central_cluster_does_not_merge_a_neighbour_beyond_its_reach():
     rng = np.random.default_rng(5)
     obj = _sphere(1500, r=0.3, c=(0, 0, 0), seed=1)

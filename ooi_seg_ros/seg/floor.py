@@ -17,6 +17,17 @@ removed. The band is at least the floor's measured thickness: the ``band_mirror_
 of the depths of points just *below* the plane, where only floor lies -- a lawn or a rough
 floor scatters its SfM points upwards as far as downwards, and a band from the inliers'
 residuals alone left a ring of lawn points around a bicycle (IoU 0.18).
+
+Two options for a support that stands on a floor (a table, a cloth-covered stool):
+``support_select="nearest"`` takes, of the planes that qualify, the nearest one below the
+convergence point whose inliers surround the object's foot (at least ``surround_sectors`` of 8
+sectors around it) instead of the one with the most inliers -- the floor under a stool often
+holds more points than the stool's top (simulator scene ``stool``: IoU 0.16 -> 0.8, the stool
+was taken for part of the object). ``band_interior`` measures the skin only under the
+support's interior (points nearer the foot than the median inlier): a table's apron or a
+cloth's sides hang below the support's edge, and read as skin they made the band as tall as
+the object's pot. ``band_tail`` (off) instead ends the skin where the depth histogram below the
+plane stops decaying.
 """
 
 from __future__ import annotations
@@ -51,6 +62,20 @@ class FloorConfig:
     layer_attach: float = 0.0  # support mode: keep points between the inliers' band and the
     # floor's thickness that lie within this x threshold of a point above it (0 = off)
     band_mirror_window: float = 10.0  # support mode: "just below" = within this x threshold
+    support_select: str = "most"  # support mode, of the planes that qualify: "most" inliers,
+    # or the "nearest" below the convergence point among those whose inliers surround its foot
+    # (a stool's top under the object, not the floor the stool stands on)
+    surround_sectors: int = 6  # "nearest": of 8 sectors around the foot, this many must each
+    # hold >= 2% of the plane's inliers
+    max_under: float = 0.15  # "nearest": at most this many points per inlier lie deeper
+    # than ``under_depth`` thresholds under the plane's interior (under an opaque support the
+    # cameras see nothing; under a plane through the object's middle they see its lower half)
+    under_depth: float = 3.0  # "nearest": "deeper" = more than this x threshold below
+    band_interior: bool = False  # support mode: measure the skin only under the support's
+    # interior (closer to the object's foot than the median inlier), away from its edges
+    band_tail: bool = False  # support mode: the skin ends where the depths below the plane
+    # fall to the level of their outer half (a table's or cloth's sides hanging below the
+    # support, which the quantile alone reads as skin up to the window's edge)
     seed: int = 0  # RANSAC seed
 
 
@@ -122,6 +147,60 @@ def paper_floor(xyz: np.ndarray, cfg: FloorConfig) -> tuple[np.ndarray, dict]:
                                  [float(r) for r in ratio]}
 
 
+def skin_end(depths: np.ndarray, window: float, bin_width: float) -> float:
+    """Depth at which the histogram of ``depths`` (in [0, window)) first falls to the level
+    of its outer half, the tail that does not decay.
+
+    Below a support plane lie the floor's skin of SfM points, whose count decays with depth,
+    and whatever hangs under the support (a table's apron, a cloth's sides), which spreads
+    evenly over depth. The tail's level is the mean count per bin over the window's outer
+    half; the skin ends at the first bin not above that level by two Poisson standard
+    deviations. With no tail (a lawn, a floor: under one point per bin) this returns
+    ``window``, so the caller's quantile decides.
+    """
+    n_bins = max(2, int(round(window / max(bin_width, 1e-12))))
+    hist, edges = np.histogram(depths, bins=n_bins, range=(0.0, window))
+    level = float(np.mean(hist[n_bins // 2:]))
+    if level < 1.0:
+        return float(window)
+    ends = np.nonzero(hist <= level + 2.0 * np.sqrt(level))[0]
+    return float(edges[ends[0]]) if len(ends) else float(window)
+
+
+def surround(points: np.ndarray, plane: np.ndarray, target: np.ndarray) -> int:
+    """How many of 8 equal sectors around the foot of ``target`` on ``plane`` hold at least
+    2% of ``points`` (the plane's inliers): 8 for a floor or table top that the object stands
+    on, fewer for a plane beside it or for the object's own flat parts (a wing)."""
+    n = plane[:3]
+    foot = target - (target @ n + plane[3]) * n
+    a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(n, a)
+    q = points - foot
+    sec = np.floor((np.arctan2(q @ b, q @ a) + np.pi) / (np.pi / 4)).astype(int) % 8
+    cnt = np.bincount(sec, minlength=8)
+    return int(np.sum(cnt >= 0.02 * max(len(points), 1)))
+
+
+def _interior(xyz: np.ndarray, plane: np.ndarray, target: np.ndarray, sd: np.ndarray,
+              thr: float) -> np.ndarray:
+    """Points nearer the foot of ``target`` on ``plane`` (horizontally) than the median of
+    the plane's inliers (``|sd| < thr``): under the support's interior, away from its edges."""
+    n = plane[:3]
+    q = xyz - (target - (target @ n + plane[3]) * n)
+    r = np.linalg.norm(q - np.outer(q @ n, n), axis=1)
+    return r < np.median(r[np.abs(sd) < thr])
+
+
+def under_interior(xyz: np.ndarray, plane: np.ndarray, target: np.ndarray, thr: float,
+                   depth: float, n_inliers: int) -> float:
+    """Points deeper than ``depth`` x ``thr`` below ``plane`` under its interior, per
+    inlier."""
+    sd = xyz @ plane[:3] + plane[3]
+    return float(np.sum(_interior(xyz, plane, target, sd, thr) & (sd < -depth * thr))
+                 / max(n_inliers, 1))
+
+
 def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
                   cam_up: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, dict]:
     """Indices kept after removing the camera-aware support plane (see module doc)."""
@@ -130,7 +209,8 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
     thr = cfg.support_threshold * s
     up = cam_up / max(np.linalg.norm(cam_up), 1e-12)
     remaining = np.arange(n)
-    best: Optional[tuple[float, np.ndarray, float]] = None
+    best: Optional[tuple[float, np.ndarray, float]] = None  # the most inliers
+    nearest: Optional[tuple[float, np.ndarray, float]] = None  # nearest below, surrounding
     tried = []
     for j in range(cfg.support_max_planes):
         if len(remaining) < max(10, cfg.support_min_inliers * n):
@@ -149,21 +229,39 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
                       "target_height": h_target, "cameras_above": cam_frac})
         if cos_up >= cfg.support_min_up and h_target > 0 and cam_frac >= 0.9:
             res = xyz[remaining[inl]] @ plane[:3] + plane[3]
-            if best is None or len(inl) > best[0]:
-                best = (len(inl), plane, float(np.std(res)))
+            if cfg.support_select not in ("most", "nearest"):
+                raise ValueError(f"floor.support_select={cfg.support_select!r}; use most or "
+                                 "nearest")
+            cand = (float(len(inl)), plane, float(np.std(res)))
+            if best is None or cand[0] > best[0]:
+                best = cand
+            if cfg.support_select == "nearest":
+                sectors = surround(xyz[remaining[inl]], plane, target)
+                hidden = under_interior(xyz, plane, target, thr, cfg.under_depth, len(inl))
+                tried[-1].update(surround_sectors=sectors, under_interior=hidden)
+                if (sectors >= cfg.surround_sectors and hidden <= cfg.max_under
+                        and (nearest is None or h_target < nearest[0])):
+                    nearest = (h_target, plane, cand[2])
         remaining = np.delete(remaining, inl)
     if best is None:
         return np.arange(n), {"support_plane": None, "planes_tried": tried,
                               "warning": "no support plane below the object with the cameras "
                                          "above it; floor stage kept every point"}
-    _, plane, res_std = best
+    _, plane, res_std = nearest if nearest is not None else best
     band = band_inliers = max(cfg.band_sigmas * res_std, 0.5 * thr)
     sd = xyz @ plane[:3] + plane[3]
     mirror = 0.0
     if cfg.band_mirror_quantile > 0:
-        below = -sd[(sd < 0) & (sd > -cfg.band_mirror_window * thr)]
+        near = (sd < 0) & (sd > -cfg.band_mirror_window * thr)
+        if cfg.band_interior:
+            # under the support's interior only: a table's apron or a cloth's sides hang at
+            # its edge, and an opaque support hides everything under its middle but its skin
+            near &= _interior(xyz, plane, target, sd, thr)
+        below = -sd[near]
         if len(below) >= 20:
             mirror = float(np.quantile(below, cfg.band_mirror_quantile))
+            if cfg.band_tail:
+                mirror = min(mirror, skin_end(below, cfg.band_mirror_window * thr, thr / 2))
             band = max(band, mirror)
     keep = sd > band
     layer = (sd > band_inliers) & ~keep

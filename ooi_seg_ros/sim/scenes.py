@@ -2,7 +2,9 @@
 
 Sizes differ by orders of magnitude on purpose (an aircraft of ~20 m in a 90 m hangar, a
 potted plant of ~0.3 m on a table, a bicycle of ~1.8 m on a lawn, a toy car of ~0.2 m among
-tools on a workbench) so that scale-dependent parameters of later stages are exercised.
+tools on a workbench) so that scale-dependent parameters of later stages are exercised. The
+plant also stands on a cloth-covered stool in a room (``stool``), seen from farther away: a
+support that itself stands on the floor, with textured sides hanging below its top.
 Clutter placement, plant leaves and bushes are random but fixed by the scene seed.
 """
 
@@ -474,6 +476,47 @@ def make_tabletop(seed: int) -> SimScene:
                     "bookshelf, pictures, lamp)")
 
 
+def make_stool(seed: int) -> SimScene:
+    """The potted plant on a round stool under a knitted cloth that hangs to the floor (the
+    set-up of the Mip-NeRF 360 bonsai): below the support surface lie the cloth's sides, not
+    only the floor's skin of SfM points."""
+    b = _Builder()
+    rng = _rng(seed, "stoolroom")
+    X, Y, Z = 2.5, 2.0, 2.6
+    _room(b, rng, X, Y, Z, rgb255(205, 200, 190))
+    cloth = b.mat("knit_cloth", Material(
+        (rgb255(50, 30, 60), rgb255(120, 80, 130)), scale=0.08, octaves=5, contrast=1.6,
+        grid=(0.012, 0.004, 0.45), grain=0.2, spot_color=rgb255(40, 25, 45), spot_frac=0.1,
+        spot_scale=0.02, seed=80))
+    rug = b.mat("rug", Material(
+        (rgb255(40, 60, 70), rgb255(170, 180, 170)), scale=0.25, octaves=5, contrast=1.8,
+        grid=(0.2, 0.03, 0.6), spot_color=rgb255(30, 40, 50), spot_frac=0.2, spot_scale=0.1,
+        seed=81))
+    b.add("rug", box((2.2, 1.6, 0.01), (0.0, 0.0, 0.005)), rug, casts_shadow=False)
+    top_z = 0.55
+    radius = 0.32
+    # the cloth: a closed drum from just above the floor to the stool's top, its rim a touch
+    # wider at the bottom where it hangs loose
+    b.add("stool_cloth", cylinder((0.0, 0.0, 0.02), (0.0, 0.0, top_z), radius + 0.03, 48,
+                                  radius1=radius), cloth)
+    chair = b.mat("chair_wood", Material(
+        (rgb255(60, 40, 25), rgb255(130, 90, 55)), scale=0.2, octaves=5, contrast=1.5,
+        stripes=((0.0, 0.0, 1.0), 0.03, 0.3, rgb255(50, 30, 20)), seed=72))
+    _chair(b, -1.1, 0.3, 0.2, chair)
+    _chair(b, 1.0, -0.6, np.pi - 0.3, chair)
+    base = np.array([0.0, 0.0, top_z])
+    _plant(b, seed, base)
+    return SimScene(
+        "stool", seed, b.parts, b.materials,
+        Lighting(direction=(0.4, 0.25, 1.0), ambient=0.5, diffuse=0.52, shadow=0.5),
+        support_z=top_z,
+        camera_bounds=(np.array([-X + 0.2, -Y + 0.2, 0.3]), np.array([X - 0.2, Y - 0.2,
+                                                                      Z - 0.2])),
+        rings=(Ring(10.0, 4.5), Ring(25.0, 4.2), Ring(40.0, 4.0)), indoor=True,
+        description="potted plant on a stool under a knitted cloth that hangs to the floor, "
+                    "in a furnished room")
+
+
 # ------------------------------------------------------------------------------------------
 # bicycle on a lawn
 # ------------------------------------------------------------------------------------------
@@ -711,4 +754,5 @@ SCENE_BUILDERS: dict[str, Callable[[int], SimScene]] = {
     "tabletop": make_tabletop,
     "bicycle": make_bicycle,
     "toycar": make_toycar,
+    "stool": make_stool,
 }
