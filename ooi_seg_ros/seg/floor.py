@@ -21,7 +21,10 @@ residuals alone left a ring of lawn points around a bicycle (IoU 0.18).
 Two options for a support that stands on a floor (a table, a cloth-covered stool):
 ``support_select="nearest"`` takes, of the planes that qualify, the nearest one below the
 convergence point whose inliers surround the object's foot (at least ``surround_sectors`` of 8
-sectors around it) instead of the one with the most inliers -- the floor under a stool often
+sectors around it) and under whose interior the farther planes are hidden (``max_under``: an
+opaque support hides the floor under its middle; a plane through the object's middle, e.g. a
+toy car's surrounding clutter tops, does not) instead of the one with the most inliers (which
+stays the fallback) -- the floor under a stool often
 holds more points than the stool's top (simulator scene ``stool``: IoU 0.16 -> 0.8, the stool
 was taken for part of the object). ``band_interior`` measures the skin only under the
 support's interior (points nearer the foot than the median inlier): a table's apron or a
@@ -67,10 +70,9 @@ class FloorConfig:
     # (a stool's top under the object, not the floor the stool stands on)
     surround_sectors: int = 6  # "nearest": of 8 sectors around the foot, this many must each
     # hold >= 2% of the plane's inliers
-    max_under: float = 0.15  # "nearest": at most this many points per inlier lie deeper
-    # than ``under_depth`` thresholds under the plane's interior (under an opaque support the
-    # cameras see nothing; under a plane through the object's middle they see its lower half)
-    under_depth: float = 3.0  # "nearest": "deeper" = more than this x threshold below
+    max_under: float = 0.05  # "nearest": at most this many inliers of the farther qualifying
+    # planes per inlier lie under the plane's interior (an opaque support hides the floor under
+    # its middle; a plane through the object's middle does not hide the ground below it)
     band_interior: bool = False  # support mode: measure the skin only under the support's
     # interior (closer to the object's foot than the median inlier), away from its edges
     band_tail: bool = False  # support mode: the skin ends where the depths below the plane
@@ -192,13 +194,21 @@ def _interior(xyz: np.ndarray, plane: np.ndarray, target: np.ndarray, sd: np.nda
     return r < np.median(r[np.abs(sd) < thr])
 
 
-def under_interior(xyz: np.ndarray, plane: np.ndarray, target: np.ndarray, thr: float,
-                   depth: float, n_inliers: int) -> float:
-    """Points deeper than ``depth`` x ``thr`` below ``plane`` under its interior, per
-    inlier."""
-    sd = xyz @ plane[:3] + plane[3]
-    return float(np.sum(_interior(xyz, plane, target, sd, thr) & (sd < -depth * thr))
-                 / max(n_inliers, 1))
+def under_interior(plane: np.ndarray, inliers: np.ndarray, target: np.ndarray,
+                   lower: np.ndarray) -> float:
+    """Points of ``lower`` (the inliers of the planes farther below) that lie under the
+    interior of ``plane`` (nearer the foot than the median of its ``inliers``), per inlier."""
+    if len(lower) == 0:
+        return 0.0
+    n = plane[:3]
+    foot = target - (target @ n + plane[3]) * n
+
+    def radius(p: np.ndarray) -> np.ndarray:
+        q = p - foot
+        return np.linalg.norm(q - np.outer(q @ n, n), axis=1)
+
+    r_in = float(np.median(radius(inliers)))
+    return float(np.sum(radius(lower) < r_in)) / max(len(inliers), 1)
 
 
 def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
@@ -211,6 +221,7 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
     remaining = np.arange(n)
     best: Optional[tuple[float, np.ndarray, float]] = None  # the most inliers
     nearest: Optional[tuple[float, np.ndarray, float]] = None  # nearest below, surrounding
+    qualified: list = []  # "nearest": (height of the target, plane, res std, inliers, k)
     tried = []
     for j in range(cfg.support_max_planes):
         if len(remaining) < max(10, cfg.support_min_inliers * n):
@@ -236,13 +247,17 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
             if best is None or cand[0] > best[0]:
                 best = cand
             if cfg.support_select == "nearest":
-                sectors = surround(xyz[remaining[inl]], plane, target)
-                hidden = under_interior(xyz, plane, target, thr, cfg.under_depth, len(inl))
-                tried[-1].update(surround_sectors=sectors, under_interior=hidden)
-                if (sectors >= cfg.surround_sectors and hidden <= cfg.max_under
-                        and (nearest is None or h_target < nearest[0])):
-                    nearest = (h_target, plane, cand[2])
+                qualified.append((h_target, plane, cand[2], remaining[inl], len(tried) - 1))
         remaining = np.delete(remaining, inl)
+    qualified.sort(key=lambda q: q[0])
+    for k, (h_target, plane, res_std, inl_idx, t) in enumerate(qualified):
+        sectors = surround(xyz[inl_idx], plane, target)
+        lower = np.concatenate([q[3] for q in qualified[k + 1:]] or [np.zeros(0, np.int64)])
+        hidden = under_interior(plane, xyz[inl_idx], target, xyz[lower])
+        tried[t].update(surround_sectors=sectors, under_interior=hidden)
+        if sectors >= cfg.surround_sectors and hidden <= cfg.max_under:
+            nearest = (h_target, plane, res_std)
+            break
     if best is None:
         return np.arange(n), {"support_plane": None, "planes_tried": tried,
                               "warning": "no support plane below the object with the cameras "
