@@ -135,12 +135,33 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.asarray(im) >= 128
 
 
-def _load_rgb(path: Path, size: Optional[tuple[int, int]] = None) -> np.ndarray:
+def exif_orientation(im) -> int:
+    """The EXIF Orientation tag (1-8) of an open PIL image; 1 (upright) when absent or bad."""
+    try:
+        o = int(im.getexif().get(0x0112, 1) or 1)
+    except (AttributeError, TypeError, ValueError, OSError, SyntaxError):
+        return 1
+    return o if 1 <= o <= 8 else 1
+
+
+def _upright(im):
+    """``im`` turned as its EXIF Orientation says (what photo viewers show), else itself."""
+    if exif_orientation(im) == 1:
+        return im
+    from PIL import ImageOps
+    try:
+        return ImageOps.exif_transpose(im)
+    except (OSError, ValueError, SyntaxError):
+        return im
+
+
+def _load_rgb(path: Path, size: Optional[tuple[int, int]] = None,
+              upright: bool = False) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
     try:
         with Image.open(path) as im:
-            arr = np.asarray(im.convert("RGB"))
-    except (OSError, UnidentifiedImageError) as exc:
+            arr = np.asarray((_upright(im) if upright else im).convert("RGB"))
+    except (OSError, UnidentifiedImageError, SyntaxError) as exc:
         raise InputError(f"cannot read image {path} ({exc}); replace or remove it") from exc
     return _resize_rgb(arr, size) if size is not None else arr
 
@@ -164,8 +185,8 @@ def _image_files(d: Path) -> list[Path]:
                   and not p.name.startswith("."))
 
 
-def _rgb_loader(path: Path, size: Optional[tuple[int, int]]):
-    return lambda: _load_rgb(path, size)
+def _rgb_loader(path: Path, size: Optional[tuple[int, int]], upright: bool = False):
+    return lambda: _load_rgb(path, size, upright)
 
 
 def read_ply_points(path: PathLike) -> np.ndarray:
@@ -649,8 +670,14 @@ def _exif_focal_px(path: Path, w: int, h: int) -> Optional[float]:
 
 
 def read_image_folder(path: PathLike, downscale: float = 1.0) -> Capture:
-    """Views without poses; focal from EXIF (35 mm equivalent) or 1.2 * max(w, h)."""
-    from PIL import Image
+    """Views without poses; focal from EXIF (35 mm equivalent) or 1.2 * max(w, h).
+
+    Photos are used upright, as viewers show them: a photo whose EXIF Orientation says it
+    is turned (a phone held in portrait) is turned back on load, so its view, its mask and
+    the SfM camera all live in the upright frame. Files that cannot be opened as images are
+    dropped, counted in ``meta["dropped"]`` and named in ``meta["unreadable"]`` (one bad
+    file in a few hundred photos should not stop a run); none readable is an error."""
+    from PIL import Image, UnidentifiedImageError
 
     p = Path(path)
     files = _image_files(p) or _image_files(p / "images")
@@ -658,12 +685,21 @@ def read_image_folder(path: PathLike, downscale: float = 1.0) -> Capture:
         raise InputError(f"{p} holds no images ({', '.join(IMAGE_SUFFIXES)})")
     views: list[View] = []
     focal_src: Counter = Counter()
+    unreadable: list[str] = []
+    errors: list[str] = []
+    turned = 0
     for i, f in enumerate(files):
         try:
             with Image.open(f) as im:
                 w, h = im.size
-        except OSError as exc:
-            raise InputError(f"cannot read image {f} ({exc}); replace or remove it") from exc
+                orient = exif_orientation(im)
+        except (OSError, UnidentifiedImageError, SyntaxError) as exc:
+            unreadable.append(f.name)
+            errors.append(f"{f.name}: {exc}")
+            continue
+        if orient in (5, 6, 7, 8):  # turned by a quarter: upright width is the height
+            w, h = h, w
+        turned += orient != 1
         fpx = _exif_focal_px(f, w, h)
         focal_src["exif" if fpx else "default"] += 1
         if fpx is None:
@@ -672,8 +708,19 @@ def read_image_folder(path: PathLike, downscale: float = 1.0) -> Capture:
         if downscale != 1.0:
             cam = cam.scaled(1.0 / downscale)
         views.append(View(key=f.stem, stamp_ns=i, camera=cam, pose=None,
-                          loader=_rgb_loader(f, (cam.width, cam.height)), source=str(f)))
+                          loader=_rgb_loader(f, (cam.width, cam.height), orient != 1),
+                          source=str(f)))
+    if not views:
+        raise InputError(f"{p}: none of its {len(files)} image files can be read "
+                         f"({'; '.join(errors[:3])})")
     meta = {"input": "images", "focal_source": dict(focal_src),
             "note": "no poses; intrinsics are a guess (EXIF or focal = "
                     f"{DEFAULT_FOCAL_FACTOR} * max(w, h)) for SfM to refine"}
+    if turned:
+        meta["exif_turned"] = turned
+    if unreadable:
+        meta["dropped"] = {"unreadable_image": len(unreadable)}
+        meta["unreadable"] = unreadable
+        log.warning("read_image_folder %s: dropped %d unreadable file(s): %s", p,
+                    len(unreadable), "; ".join(errors[:5]))
     return Capture(views=views, source=str(p), meta=meta)

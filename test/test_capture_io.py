@@ -281,6 +281,37 @@ def test_plain_image_folder(tmp_path):
         "img0", "img1", "img2", "img3"]
 
 
+def test_plain_image_folder_turns_exif_rotated_photos_upright_and_drops_unreadable(tmp_path):
+    """A phone's portrait photo is stored landscape with an EXIF Orientation tag; viewers
+    (and any mask a user draws) show it upright, so the capture loads it upright: its camera
+    is 30x40 and its pixels are the turned ones. A file that is no image is dropped and
+    counted (it stopped the whole folder once), not a crash."""
+    upright = np.zeros((40, 30, 3), np.uint8)
+    upright[:5] = 255  # a white band at the top of the upright photo
+    stored = Image.fromarray(upright).rotate(90, expand=True)  # 40 wide, band on the left
+    exif = Image.Exif()
+    exif[0x0112] = 6  # "turn 90 degrees clockwise to view"
+    stored.save(tmp_path / "a.jpg", exif=exif, quality=95)
+    Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(tmp_path / "b.jpg")
+    (tmp_path / "c.jpg").write_bytes(b"not a photo at all")
+    cap = capture_io.read_capture(tmp_path)
+    assert [v.key for v in cap.views] == ["a", "b"]
+    a, b = cap.views
+    assert (a.camera.width, a.camera.height) == (30, 40)
+    assert (b.camera.width, b.camera.height) == (40, 30)
+    img = a.get_image()
+    assert img.shape == (40, 30, 3)
+    assert img[:5].mean() > 200 and img[10:].mean() < 30  # the band is at the top again
+    assert cap.meta["exif_turned"] == 1
+    assert cap.meta["dropped"] == {"unreadable_image": 1} and cap.meta["unreadable"] == ["c.jpg"]
+    half = capture_io.read_capture(tmp_path, downscale=2)
+    assert half.views[0].get_image().shape == (20, 15, 3)
+    for f in ("a.jpg", "b.jpg"):
+        (tmp_path / f).unlink()
+    with pytest.raises(InputError, match="none of its 1 image files can be read"):
+        capture_io.read_capture(tmp_path)
+
+
 def test_ply_points_own_and_foreign(tmp_path):
     pts = np.random.default_rng(1).normal(size=(20, 3))
     capture_io.write_ply_points(tmp_path / "a.ply", pts)

@@ -91,7 +91,9 @@ def test_segment_cli_on_photos_without_poses(tmp_path, monkeypatch):
     at 256x192 x 30 the mapping puts no point on the plant, hence this size). Six photos are
     portrait (turned 90 deg, as a phone mixes them): pycolmap's one shared camera dropped
     them; now each size gets its camera (measured: 60/60 registered, IoU 0.904-0.905, the
-    turned ones 0.82-0.95). The mapping's scratch folder (database and model) is removed
+    turned ones 0.82-0.95). Six more are stored turned with an EXIF Orientation tag: they are
+    used upright (as viewers show them, and as the ground truth is drawn), and one file is
+    no image (dropped, said). The mapping's scratch folder (database and model) is removed
     afterwards (it was left in /tmp, up to hundreds of MB per run), and the estimated cameras
     stay in OUT/sparse so that `ooi-seg train OUT` finds the poses (it once reloaded the bare
     photos and stopped: no usable training views)."""
@@ -110,11 +112,21 @@ def test_segment_cli_on_photos_without_poses(tmp_path, monkeypatch):
         im, g = Image.fromarray(v.image), v.gt_mask
         if k % 10 == 5:  # portrait
             im, g = im.rotate(90, expand=True), np.rot90(g)
-        im.save(img_dir / f"{k:03d}.png")
+        if k % 10 == 7:  # stored turned, with the EXIF tag that turns it back to view it
+            exif = Image.Exif()
+            exif[0x0112] = 6
+            im.rotate(90, expand=True).save(img_dir / f"{k:03d}.png", exif=exif)
+        else:
+            im.save(img_dir / f"{k:03d}.png")
         gt[f"{k:03d}"] = g
+    (img_dir / "999.png").write_bytes(b"\x89PNG truncated by a full SD card")
     out = tmp_path / "seg"
     assert cli_main(["segment", str(img_dir), "--out", str(out)]) == 0
     rep = json.loads((out / "report.json").read_text())
+    # the unreadable file is dropped and said; the EXIF-turned photos are masked upright
+    assert any("999.png" in w and "dropped 1" in w for w in rep["warnings"]), rep["warnings"]
+    assert sum(Image.open(out / "masks" / f"{k}.png").size == (320, 240)
+               for k in gt if int(k) % 10 == 7) >= 5
     masks = sorted(p.stem for p in (out / "masks").glob("*.png"))
     assert len(masks) >= 57 and set(masks) <= set(gt)
     assert sum(int(k) % 10 == 5 for k in masks) >= 5  # the portrait photos are registered

@@ -93,6 +93,15 @@ def load_input(args) -> tuple:
     # was not passed here once: masks at full size, training images at 1/downscale)
     cap, cloud = read_capture_and_cloud(path, downscale=args.downscale)
     info["kind"] = "capture"
+    dropped = {k: n for k, n in (cap.meta.get("dropped") or {}).items() if n}
+    if dropped:  # counted and logged by the reader; said again where the user looks
+        info["dropped"] = dropped
+        names = cap.meta.get("unreadable") or []
+        info.setdefault("warnings", []).append(
+            f"input: dropped {sum(dropped.values())} image(s) ({dropped})"
+            + (f": {', '.join(names[:5])}{', ...' if len(names) > 5 else ''}" if names else ""))
+    if cap.meta.get("exif_turned"):
+        info["exif_turned"] = cap.meta["exif_turned"]
     if cloud is None or len(cloud) == 0:
         try:
             from ..sfm.pipeline import reconstruct

@@ -154,6 +154,21 @@ def _same_size_on_disk(capture: Capture) -> bool:
         return False
 
 
+def _any_turned(paths: list[Path]) -> bool:
+    """True when a photo's EXIF Orientation turns it: pycolmap reads the stored pixels, the
+    capture loads photos upright, so such photos are handed to pycolmap as upright copies."""
+    from PIL import Image
+    from ..capture_io import exif_orientation
+    for p in paths:
+        try:
+            with Image.open(p) as im:
+                if exif_orientation(im) != 1:
+                    return True
+        except OSError:
+            continue
+    return False
+
+
 def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[str | Path],
                          report: dict, keep_model: Optional[str | Path] = None
                          ) -> tuple[Capture, SfmCloud, dict]:
@@ -161,15 +176,28 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
     folders = {p.parent for p in srcs}
     tmp = None
     on_disk = (len(srcs) == len(capture.views) and len(folders) == 1
-               and all(p.is_file() for p in srcs) and _same_size_on_disk(capture))
+               and all(p.is_file() for p in srcs) and _same_size_on_disk(capture)
+               and not _any_turned(srcs))
     if on_disk:  # the photos themselves (not downscaled copies): let pycolmap read them
         images_dir = folders.pop()
-    else:  # write the images out for pycolmap
+    else:  # write the images out for pycolmap (downscaled, or turned upright as loaded)
         from PIL import Image
         tmp = tempfile.TemporaryDirectory(prefix="sfm_images_")
         images_dir = Path(tmp.name)
+        unreadable = []
         for v in capture.views:
-            Image.fromarray(v.get_image()).save(images_dir / f"{v.key}.png")
+            try:
+                img = v.get_image()
+            except InputError as exc:  # a photo whose header read but whose pixels do not
+                unreadable.append(f"{v.key}: {exc}")
+                continue
+            Image.fromarray(img).save(images_dir / f"{v.key}.png")
+        if unreadable:
+            report["unreadable_images"] = unreadable
+            if len(unreadable) == len(capture.views):
+                tmp.cleanup()
+                raise InputError(f"none of the {len(unreadable)} images can be read: "
+                                 f"{'; '.join(unreadable[:3])}")
     own_work = work_dir is None  # a scratch folder of ours: removed when the mapping is read
     work = Path(tempfile.mkdtemp(prefix="sfm_map_")) if own_work else Path(work_dir)
     try:
@@ -209,6 +237,10 @@ def _reconstruct_unposed(capture: Capture, cfg: SfmConfig, work_dir: Optional[st
                     "were taken in name order along one path, part of the capture was "
                     "registered in the wrong place (its own reprojection error does not show "
                     "this) -- check the cameras in the SfM output, or add photos between")
+    if report.get("unreadable_images"):
+        bad = report["unreadable_images"]
+        msgs.append(f"{len(bad)} image(s) could not be decoded and were left out of the "
+                    f"mapping (no mask): {'; '.join(bad[:3])}")
     away = looking_away(cap)
     report["cameras_looking_away"] = away
     if away:
