@@ -128,10 +128,14 @@ CACHE_BASELINE = {"epipolar_band_matching": False}  # SfM defaults of the v2 cac
 
 def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source: str,
               cache: Path, refresh: bool = False,
-              sfm_set: Optional[dict] = None) -> tuple[Capture, SfmCloud, dict]:
+              sfm_set: Optional[dict] = None, jpeg: int = 0, sim_set: Optional[dict] = None
+              ) -> tuple[Capture, SfmCloud, dict]:
     """(capture with GT masks, cloud, info) of one case; SfM clouds are cached in ``cache``.
 
     ``sfm_set``: ``IncrementalConfig`` overrides (cached apart, under a name made from them).
+    ``sim_set``: further ``SimConfig`` options of the simulated capture (cached apart).
+    ``jpeg`` > 0: every image goes through JPEG at this quality first (as a camera or a
+    ``/compressed`` image topic delivers it), for the SfM and the segmentation alike.
     """
     from ooi_seg_ros.sfm.pipeline import SfmConfig, reconstruct
     from ooi_seg_ros.sfm.incremental import IncrementalConfig
@@ -142,6 +146,8 @@ def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source
     base = dict(asdict(IncrementalConfig()), **CACHE_BASELINE)
     diff = {k: v for k, v in eff.items() if base.get(k) != v}
     tag = "_" + "_".join(f"{k}-{v}" for k, v in sorted(diff.items())) if diff else ""
+    tag += f"_jpeg{int(jpeg)}" if jpeg else ""
+    tag += "".join(f"_{k}-{v}" for k, v in sorted((sim_set or {}).items()))
 
     def sfm_config(**kw) -> SfmConfig:
         return SfmConfig(incremental=IncrementalConfig(**(sfm_set or {})), progress=False, **kw)
@@ -153,6 +159,7 @@ def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source
             return cap, cloud, {"cached": True}
         from ooi_seg_ros.capture_io import read_capture_and_cloud
         cap, _ = read_capture_and_cloud(ROOT / "bags" / "demo.mcap")
+        cap = _jpeg(cap, jpeg)
         t0 = time.perf_counter()
         _, cloud, _ = reconstruct(cap, sfm_config())
         cache.mkdir(parents=True, exist_ok=True)
@@ -167,12 +174,31 @@ def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source
     if path.exists() and not refresh:
         cap, cloud = _load(path)
         return cap, cloud, {"cached": True}
-    sim = simulate_capture(scene, n_views=n_views, width=w, height=h, seed=seed)
+    sim = simulate_capture(scene, n_views=n_views, width=w, height=h, seed=seed,
+                           **(sim_set or {}))
+    cap = _jpeg(sim.capture, jpeg)
     t0 = time.perf_counter()
-    _, cloud, _ = reconstruct(sim.capture, sfm_config(use_all_frames=True))
+    _, cloud, _ = reconstruct(cap, sfm_config(use_all_frames=True))
     cache.mkdir(parents=True, exist_ok=True)
-    _save(path, sim.capture, cloud)
-    return sim.capture, cloud, {"cached": False, "sfm_s": time.perf_counter() - t0}
+    _save(path, cap, cloud)
+    return cap, cloud, {"cached": False, "sfm_s": time.perf_counter() - t0}
+
+
+def _jpeg(cap: Capture, quality: int) -> Capture:
+    """``cap`` with every image through a JPEG encode / decode at ``quality`` (0: as is)."""
+    if not quality:
+        return cap
+    import dataclasses
+    import io
+    from PIL import Image
+    views = []
+    for v in cap.views:
+        bio = io.BytesIO()
+        Image.fromarray(v.get_image()).save(bio, format="JPEG", quality=int(quality))
+        bio.seek(0)
+        img = np.asarray(Image.open(bio).convert("RGB"))
+        views.append(dataclasses.replace(v, image=img, loader=None))
+    return dataclasses.replace(cap, views=views)
 
 
 def main() -> None:
@@ -197,6 +223,11 @@ def main() -> None:
     ap.add_argument("--sfm-set", type=json.loads, default=None, metavar="JSON",
                     help="IncrementalConfig overrides for the SfM (its clouds cached apart)")
     ap.add_argument("--json", help="write all per-run metrics here")
+    ap.add_argument("--jpeg", type=int, default=0, metavar="Q",
+                    help="images through JPEG at quality Q first (SfM cached apart)")
+    ap.add_argument("--sim-set", type=json.loads, default=None, metavar="JSON",
+                    help='SimConfig options of the captures, e.g. \'{"shade_subsamples": true}\''
+                         " (cached apart)")
     args = ap.parse_args()
     w, h = (int(x) for x in args.size.split("x"))
     variants = {n: VARIANTS[n] for n in args.variants}
@@ -210,7 +241,8 @@ def main() -> None:
         seeds = [0] if scene == "demo" else args.seeds
         for seed in seeds:
             cap, cloud, info = load_case(scene, seed, args.views, (w, h), args.cloud,
-                                         Path(args.cache), args.refresh, args.sfm_set)
+                                         Path(args.cache), args.refresh, args.sfm_set,
+                                         args.jpeg, args.sim_set)
             keys = None
             if args.view_step > 1:
                 keys = [v.key for v in cap.views[::args.view_step]]
