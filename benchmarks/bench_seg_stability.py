@@ -64,6 +64,8 @@ def main() -> None:
                     help="IncrementalConfig overrides (as bench_seg_quality.py)")
     ap.add_argument("--set", type=json.loads, default={}, metavar="JSON",
                     help="overrides of the segmentation default")
+    ap.add_argument("--jpeg", type=int, default=0,
+                    help="images through JPEG at this quality first (as bench_seg_quality.py)")
     ap.add_argument("--draws", type=int, default=5)
     ap.add_argument("--drop", type=float, default=0.02, help="share of points removed a draw")
     ap.add_argument("--flip", type=float, default=0.1,
@@ -77,7 +79,7 @@ def main() -> None:
     for scene in args.scenes:
         for seed in ([0] if scene == "demo" else args.seeds):
             cap, cloud, _ = load_case(scene, seed, args.views, (w, h), "sfm", Path(args.cache),
-                                      sfm_set=args.sfm_set)
+                                      sfm_set=args.sfm_set, jpeg=args.jpeg)
             gts = {v.key: v.gt_mask for v in cap.views}
             on = point_support(cloud.xyz, gts, cap.views) >= 0.9
             n_on = max(int(on.sum()), 1)
@@ -91,6 +93,8 @@ def main() -> None:
             xyz, check = ooi_points(cap, cloud, seed, args.set, check=True)
             full = score(xyz)
             warned = f"{check['flips']}/{check['draws']}" if check else "off"
+            if check and "resolved" in check:  # the tie-break's pick (None: the first choice)
+                warned += f" ->{check['resolved']['chosen_scale']}"
             draws = []
             for d in range(args.draws):
                 keep = np.random.default_rng(1000 + d).random(len(cloud)) >= args.drop
@@ -105,7 +109,7 @@ def main() -> None:
                          "flips": flips, "check": check})
             print(f"{scene:>9} {seed:>4} {full[0]:7d} {full[1]:6.3f} {full[2]:6.3f} "
                   f"{min(ns):6d}-{max(ns):<6d} {min(ps):5.3f}-{max(ps):5.3f} "
-                  f"{min(cs):5.3f}-{max(cs):5.3f} {flips:5d} {warned:>5}", flush=True)
+                  f"{min(cs):5.3f}-{max(cs):5.3f} {flips:5d} {warned}", flush=True)
     flipped = [f"{r['scene']} {r['seed']} ({r['flips']}/{args.draws})" for r in rows
                if r["flips"]]
     print(f"\n{len(flipped)} of {len(rows)} captures flipped in at least one draw of "

@@ -7,7 +7,7 @@ from ooi_seg_ros.seg.pipeline import make_config, segment
 from ooi_seg_ros.seg.pipeline import preset
 from ooi_seg_ros.seg.noise import NoiseConfig
 from ooi_seg_ros.seg.stability import (StabilityConfig, centred_alternative, colour_ratio,
-                                       stability_check, stability_warning)
+                                       copies_choice, stability_check, stability_warning)
 
 
 def test_a_stable_choice_has_no_flips_and_a_changing_one_is_counted():
@@ -149,3 +149,45 @@ def test_a_resolved_flip_says_what_it_kept(aircraft):
     w = [w for w in r.warnings if w.startswith("stability:")]
     assert len(w) == 1 and ("kept this one" in w[0] or "kept instead" in w[0])
     assert r.counts["stability"] == len(r.ooi_cloud)
+
+
+def test_the_tie_break_offers_what_the_flipped_copies_chose():
+    """Toy car seed 1 on JPEG images (session 20): the copies without 10% of the points chose
+    the car alone, but the noise stage re-run on the *whole* cloud at their eps scale still
+    joined part of the clutter (the dropped points had bridged it), a set whose further points
+    looked like the rest, so the wrong choice stayed. The copies' own choice is a candidate."""
+    n = 1000
+    chosen = np.arange(800)  # object 0-499 + neighbour 500-799
+    flipped = []
+    cfg = StabilityConfig(draws=8, drop=0.1)
+    # six copies take the object alone, two a different fragment (600-799)
+    calls = iter(range(8))
+
+    def run(idx):
+        i = next(calls)
+        return (idx[idx < 500] if i < 6 else idx[(idx >= 600) & (idx < 800)]), {}
+
+    st = stability_check(n, chosen, run, cfg, seed=3, flipped=flipped)
+    assert st["flips"] == 8 and len(flipped) == 8
+    sets = copies_choice(n, flipped, cfg.min_jaccard)
+    assert len(sets) == 2
+    # every point some copy of the group held, by majority: the object whole again
+    np.testing.assert_array_equal(sets[0], np.arange(500))
+    assert set(sets[1]) <= set(range(600, 800)) and len(sets[1]) > 180
+    # a group of fewer copies than asked for is the exception, not an alternative
+    assert len(copies_choice(n, flipped, cfg.min_jaccard, min_copies=4)) == 1
+    # in the tie-break: the object alone is best centred and not a same-coloured fragment
+    rng = np.random.default_rng(4)
+    target = np.zeros(3)
+    xyz = np.vstack([_blob(rng, target, 1.0, 500), _blob(rng, np.array([2.0, 0, 0]), 0.7, 300)])
+    rgb = np.vstack([np.clip(rng.normal([200, 40, 40], 15, (500, 3)), 0, 255),
+                     np.clip(rng.normal([60, 60, 200], 15, (300, 3)), 0, 255)])
+    ncfg = NoiseConfig(**preset("ours")["noise"])
+    k, info = centred_alternative(xyz, np.arange(800), [], ncfg, target, radius=3.0, rgb=rgb,
+                                  alike=2.0, copies=sets)
+    assert info["chosen_scale"] == "copies" and sorted(k) == list(range(500))
+    assert [c[0] for c in info["candidates"]] == [None, "copies", "copies"]
+    # without the copies' sets there is nothing else to choose
+    k0, info0 = centred_alternative(xyz, np.arange(800), [], ncfg, target, radius=3.0, rgb=rgb,
+                                    alike=2.0)
+    assert info0["chosen_scale"] is None and len(k0) == 800

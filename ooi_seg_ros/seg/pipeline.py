@@ -42,8 +42,8 @@ from .noise import NoiseConfig, noise_filter
 from .photo import background_planes
 from .refine import RefineConfig, refine_masks
 from .roi import RoiConfig, frame_radius, roi_filter
-from .stability import (StabilityConfig, centred_alternative, stability_check,
-                        stability_warning)
+from .stability import (StabilityConfig, centred_alternative, copies_choice,
+                        stability_check, stability_warning)
 
 METHODS = ("paper", "ours")
 
@@ -306,26 +306,35 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         run(name, fn)
     if cfg.stability.draws > 0:
         t0 = time.perf_counter()
+        flipped: list = []
         st = stability_check(len(full), sel, lambda idx: _run_point_stages(stages, full.xyz, idx),
-                             cfg.stability, cfg.seed)
+                             cfg.stability, cfg.seed, flipped)
         params["stability"] = st
         w = stability_warning(st, len(cloud))
-        if w and cfg.stability.resolve and st["flip_scales"] and cfg.noise.method == "dbscan":
+        if (w and cfg.stability.resolve and (st["flip_scales"] or flipped)
+                and cfg.noise.method == "dbscan"):
             local = np.nonzero(np.isin(noise_in, sel))[0]
+            copies = [np.nonzero(np.isin(noise_in, c))[0] for c in
+                      copies_choice(len(full), flipped, cfg.stability.min_jaccard,
+                                    min_copies=(cfg.stability.draws + 1) // 2)]
             k, st["resolved"] = centred_alternative(
                 full.xyz[noise_in], local, st["flip_scales"], cfg.noise, target, radius,
                 rgb=full.rgb[noise_in] if full.rgb is not None else None,
-                alike=cfg.stability.alike_colour)
+                alike=cfg.stability.alike_colour,
+                copies=copies if cfg.stability.copies else None)
             cands = st["resolved"]["candidates"]
-            if st["resolved"]["chosen_scale"] is not None:
+            chosen = st["resolved"]["chosen_scale"]
+            if chosen is not None:
                 sel = noise_in[k]
                 cloud = full.subset(sel)
                 stage_clouds["stability"] = (cloud.xyz, cloud.rgb)
                 why = ("its further points look like this one's: the rest of the object"
                        if cands[0][3] != "-" else "better centred on the cameras' "
                        "convergence point")
-                w += (f"; kept instead the choice of a re-run ({len(cloud)} points, eps "
-                      f"{st['resolved']['chosen_scale']} spacings; {why})")
+                how = ("the re-runs' own choice" if chosen == "copies"
+                       else f"the noise stage at eps {chosen} spacings")
+                w += (f"; kept instead the choice of a re-run ({len(cloud)} points, {how}; "
+                      f"{why})")
             elif any(c[3] is None for c in cands[1:]):
                 w += ("; kept this one (a re-run chose a part of it whose colours match the "
                       "rest)")
