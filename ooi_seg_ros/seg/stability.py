@@ -141,8 +141,7 @@ def copies_choice(n: int, flipped: list, min_jaccard: float, min_copies: int = 1
     the one that did not is the exception, not an alternative). A copy's choice is what the
     point stages really do on that cloud; re-running only the noise stage on the whole cloud
     at the copy's eps scale is not the same set (the dropped points had bridged the object to
-    a neighbour: toy car seed 1 on JPEG
-    images, session 20)."""
+    a neighbour: toy car seed 1 on JPEG images, session 20)."""
     groups: list[list[tuple[np.ndarray, np.ndarray]]] = []
     for held, got in flipped:
         for g in groups:
