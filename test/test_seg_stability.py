@@ -75,6 +75,14 @@ def test_a_flip_becomes_a_warning(aircraft):
     assert r.params["stability"]["flips"] == 2
     w = [w for w in r.warnings if w.startswith("stability:")]
     assert len(w) == 1 and "2 of 2 re-runs" in w[0] and f"instead of {len(r.ooi_cloud)}" in w[0]
+    # with the tie-break on, each copy (a group of one: half of 2 draws) is offered as well;
+    # their sets are the whole cloud's but for the points they left out, so a fragment of it
+    # with the same colours: the whole cloud's choice stays
+    r2 = segment(sim.capture, cloud, make_config(
+        "ours", {"refine": {"enabled": False}, "stability": {"draws": 2, "min_jaccard": 1.01}}))
+    res = r2.params["stability"]["resolved"]
+    assert [c[0] for c in res["candidates"]].count("copies") == 2
+    assert res["chosen_scale"] is None and len(r2.ooi_cloud) == len(r.ooi_cloud)
 
 
 def _blob(rng, centre, radius, n):
