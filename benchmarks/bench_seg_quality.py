@@ -110,14 +110,15 @@ def _save(path: Path, cap: Capture, cloud: SfmCloud) -> None:
         obs_view=cloud.obs_view, obs_xy=cloud.obs_xy, cloud_views=cloud_views)
 
 
-def _load(path: Path) -> tuple[Capture, SfmCloud]:
+def _load(path: Path, compressed: bool = False) -> tuple[Capture, SfmCloud]:
+    """Capture and cloud saved by ``_save``; ``compressed`` marks the images as JPEG'd."""
     z = np.load(path, allow_pickle=False)
     w, h, fx, fy, cx, cy = z["cam"]
     cam = CameraIntrinsics(int(w), int(h), fx, fy, cx, cy, str(z["dist_model"]), z["dist"])
     gt = z["gt"]
     rows = zip(z["keys"], z["stamps"], z["R"], z["t"], z["images"])
-    views = [View(str(k), int(s), cam, Pose(R, t), img, gt[i] if len(gt) else None)
-             for i, (k, s, R, t, img) in enumerate(rows)]
+    views = [View(str(k), int(s), cam, Pose(R, t), img, gt[i] if len(gt) else None,
+                  compressed=compressed) for i, (k, s, R, t, img) in enumerate(rows)]
     cloud = SfmCloud(z["xyz"], z["rgb"], z["error"], z["obs_ptr"], z["obs_view"], z["obs_xy"],
                      [views[i] for i in z["cloud_views"]])
     return Capture(views), cloud
@@ -155,7 +156,7 @@ def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source
     if scene == "demo":
         path = cache / f"seg_bench_demo{tag}.npz"
         if path.exists() and not refresh:
-            cap, cloud = _load(path)
+            cap, cloud = _load(path, compressed=jpeg > 0)
             return cap, cloud, {"cached": True}
         from ooi_seg_ros.capture_io import read_capture_and_cloud
         cap, _ = read_capture_and_cloud(ROOT / "bags" / "demo.mcap")
@@ -172,7 +173,7 @@ def load_case(scene: str, seed: int, n_views: int, size: tuple[int, int], source
         return sim.capture, depth_proxy_cloud(sim, 300, seed=seed), {"cached": False}
     path = cache / f"seg_bench_{scene}_s{seed}_v{n_views}_{w}x{h}{tag}.npz"
     if path.exists() and not refresh:
-        cap, cloud = _load(path)
+        cap, cloud = _load(path, compressed=jpeg > 0)
         return cap, cloud, {"cached": True}
     sim = simulate_capture(scene, n_views=n_views, width=w, height=h, seed=seed,
                            **(sim_set or {}))
@@ -197,7 +198,7 @@ def _jpeg(cap: Capture, quality: int) -> Capture:
         Image.fromarray(v.get_image()).save(bio, format="JPEG", quality=int(quality))
         bio.seek(0)
         img = np.asarray(Image.open(bio).convert("RGB"))
-        views.append(dataclasses.replace(v, image=img, loader=None))
+        views.append(dataclasses.replace(v, image=img, loader=None, compressed=True))
     return dataclasses.replace(cap, views=views)
 
 

@@ -290,6 +290,7 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
     gt_points = None
     info_error = ""
     dropped: Counter = Counter()
+    lossy: set[int] = set()  # stamps of JPEG CompressedImage messages
     lazy = lazy_images and not reader.truncated
     for topic, ty, log_t, data in reader.messages(topics=want):
         msg = reader.decode(ty, data, topic)
@@ -297,6 +298,8 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
             stamp = msgconv.stamp_to_ns(msg.header.stamp)
             rgb = _bag_image_rgb(msg, ty)
             images.append((stamp, None if lazy else rgb, rgb.shape[:2], log_t))
+            if not ty.endswith("/Image") and msgconv.is_lossy(msg):
+                lossy.add(stamp)
         elif topic == info_topic:
             try:
                 infos.append((msgconv.stamp_to_ns(msg.header.stamp),
@@ -369,7 +372,8 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
         loader = (_bag_image_loader(reader, image_topic, stamp, log_t, (cam.width, cam.height))
                   if rgb is None else None)
         views.append(View(key=str(stamp), stamp_ns=stamp, camera=cam, pose=pose, image=rgb,
-                          gt_mask=mask, loader=loader, source=f"{path}:{image_topic}"))
+                          gt_mask=mask, loader=loader, source=f"{path}:{image_topic}",
+                          compressed=stamp in lossy))
     if dropped:
         log.warning("read_capture %s: dropped %s", path, dict(dropped))
     if not views:
@@ -388,6 +392,11 @@ def read_bag_capture(path: PathLike, *, downscale: float = 1.0,
     if not pose_topic:
         meta["note"] = "the bag has no pose topic: views have no poses (SfM must estimate them)"
     return Capture(views=views, source=str(path), gt_ooi_points=gt_points, meta=meta)
+
+
+def is_lossy_file(path: PathLike) -> bool:
+    """True for a JPEG image file (by its name: .jpg / .jpeg, any case)."""
+    return Path(path).suffix.lower() in (".jpg", ".jpeg")
 
 
 def _bag_image_rgb(msg, type_name: str) -> np.ndarray:
@@ -410,10 +419,13 @@ def _bag_image_loader(reader, topic: str, stamp: int, log_t: int, size: tuple[in
     return load
 
 
-def write_capture_bag(capture: Capture, path: PathLike, compressed: bool = False) -> Path:
+def write_capture_bag(capture: Capture, path: PathLike, compressed: bool = False,
+                      image_format: str = "png") -> Path:
     """A capture bag (images, camera_info, poses, ground truth); same capture -> same bytes.
 
     Messages are logged at their view stamps. Written atomically (``<path>.part`` renamed).
+    ``compressed``: images as sensor_msgs/CompressedImage in ``image_format`` (png, lossless;
+    or jpeg at quality 95, as many drone cameras deliver them).
     """
     from . import msgconv
     from .bag import BagWriter
@@ -447,7 +459,8 @@ def write_capture_bag(capture: Capture, path: PathLike, compressed: bool = False
                 w.write(POSE_TOPIC, msgconv.pose_to_pose_stamped(v.pose, stamp, "map"), t)
             w.write(INFO_TOPIC, msgconv.intrinsics_to_camera_info(v.camera, stamp), t)
             img = v.get_image()
-            w.write(img_topic, msgconv.rgb_to_compressed(img, stamp) if compressed
+            w.write(img_topic, msgconv.rgb_to_compressed(img, stamp, fmt=image_format)
+                    if compressed
                     else msgconv.rgb_to_image(img, stamp), t)
             if v.gt_mask is not None:
                 w.write(GT_MASK_TOPIC, msgconv.mask_to_image(v.gt_mask, stamp), t)
@@ -557,7 +570,7 @@ def read_nerfstudio(path: PathLike, downscale: float = 1.0) -> Capture:
             mask = _load_mask(p / fr["gt_mask_path"], size)
         views.append(View(key=Path(fp).stem, stamp_ns=int(fr.get("stamp_ns", i)), camera=cam,
                           pose=pose, gt_mask=mask, loader=_rgb_loader(img_path, size),
-                          source=str(img_path)))
+                          source=str(img_path), compressed=is_lossy_file(img_path)))
     gt = None
     for cand in (data.get("ooi_points_path"), "ooi_points.ply", data.get("ply_file_path")):
         if cand and (p / cand).is_file():
@@ -709,7 +722,7 @@ def read_image_folder(path: PathLike, downscale: float = 1.0) -> Capture:
             cam = cam.scaled(1.0 / downscale)
         views.append(View(key=f.stem, stamp_ns=i, camera=cam, pose=None,
                           loader=_rgb_loader(f, (cam.width, cam.height), orient != 1),
-                          source=str(f)))
+                          source=str(f), compressed=is_lossy_file(f)))
     if not views:
         raise InputError(f"{p}: none of its {len(files)} image files can be read "
                          f"({'; '.join(errors[:3])})")

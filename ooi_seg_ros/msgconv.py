@@ -136,6 +136,13 @@ def compressed_to_rgb(msg: CompressedImage) -> np.ndarray:
                          "publish jpeg or png") from exc
 
 
+def is_lossy(msg: CompressedImage) -> bool:
+    """True when a sensor_msgs/CompressedImage is JPEG (its ``format``, e.g. "jpeg" or
+    "rgb8; jpeg compressed bgr8", names it); png is lossless."""
+    fmt = str(msg.format).lower()
+    return "jpeg" in fmt or "jpg" in fmt
+
+
 def rgb_to_compressed(rgb: np.ndarray, stamp, frame_id: str = "camera_optical",
                       fmt: str = "png", quality: int = 95) -> CompressedImage:
     """sensor_msgs/CompressedImage (png lossless by default, or jpeg) of a uint8 RGB array."""

@@ -61,6 +61,19 @@ def test_bag_round_trip_and_determinism(tmp_path, compressed):
     assert [v.key for v in back.views] == [str(v.stamp_ns) for v in cap.views]
     assert back.meta["scene"] == "unit" and back.meta["n"] == 4 and back.meta["dropped"] == {}
     assert not list(p1.parent.glob("*.part"))
+    assert not any(v.compressed for v in back.views)  # png (or raw): lossless
+
+
+def test_jpeg_bag_images_are_marked_compressed(tmp_path):
+    """JPEG CompressedImage messages give views marked ``compressed`` (the refinement's
+    ``hull_graph`` acts on those); the images decode at their size."""
+    cap = _capture()
+    p = capture_io.write_capture_bag(cap, tmp_path / "j.mcap", compressed=True,
+                                     image_format="jpeg")
+    back = capture_io.read_capture(p)
+    assert len(back.views) == len(cap.views) and all(v.compressed for v in back.views)
+    for a, b in zip(cap.views, back.views):
+        assert a.get_image().shape == b.get_image().shape and a.key == b.key
 
 
 def test_folder_round_trip(tmp_path):
@@ -219,6 +232,7 @@ def test_nerfstudio_folder_from_elsewhere(tmp_path):
     assert v.camera.distortion_model == "none" and v.camera.width == 15
     assert np.allclose(v.pose.t, [2.0, 0, 1]) and v.get_image().shape == (10, 15, 3)
     assert cap.gt_ooi_points is None and not cap.has_gt_masks
+    assert all(v.compressed for v in cap.views)  # .jpg frames
     json.dump({"frames": frames}, open(d / "transforms.json", "w"))
     with pytest.raises(InputError, match="fl_x"):
         capture_io.read_capture(d)
@@ -267,6 +281,7 @@ def test_plain_image_folder(tmp_path):
     assert cap.views[0].camera.fx == 1.2 * 40
     assert abs(cap.views[2].camera.fx - 28 / 36 * 40) < 1e-9
     assert cap.meta["focal_source"] == {"default": 2, "exif": 1}
+    assert [v.compressed for v in cap.views] == [False, False, True]  # the .jpg is lossy
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(InputError, match="no bag"):

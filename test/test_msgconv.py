@@ -91,6 +91,7 @@ def test_compressed_images():
     smooth = np.repeat(smooth, 16, 0)
     jpg = msgconv.rgb_to_compressed(smooth, 3, fmt="jpeg", quality=95)
     assert np.abs(msgconv.compressed_to_rgb(jpg).astype(int) - smooth).max() < 12
+    assert msgconv.is_lossy(jpg) and not msgconv.is_lossy(png)
     jpg.data = b"\xff\xd8garbage"
     with pytest.raises(InputError, match="jpeg or png"):
         msgconv.compressed_to_rgb(jpg)

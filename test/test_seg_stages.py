@@ -606,6 +606,39 @@ def test_hull_additions_bring_back_a_part_other_views_hold():
     assert out2[views[0].key][cut].mean() > 0.8
 
 
+def test_graph_verdict_drops_a_ragged_halo_and_keeps_a_thin_part():
+    """On compressed images (``refine.hull_graph``) the hull additions must survive a graph
+    cut: of a ragged 1-px ring of blended object / background colour round a solid mask, the
+    cut keeps far fewer pixels than the per-pixel colour test; a 1-px line away from any thick
+    mask part is kept by the thin-part guard, which the cut alone would remove."""
+    from ooi_seg_ros.seg.refine import _graph_verdict, gmm_log_likelihood
+    red, green = np.array([200, 30, 30]), np.array([40, 160, 40])
+    img = np.zeros((48, 64, 3)) + green
+    m = np.zeros((48, 64), bool)
+    m[14:34, 10:30] = True
+    img[m] = red
+    yy, xx = np.mgrid[:48, :64]
+    ring = np.zeros_like(m)
+    ring[13:35, 9:31] = True
+    halo = ring & ~m & ((yy + xx) % 2 == 0)  # every other outline pixel blended
+    img[halo] = 0.55 * red + 0.45 * green
+    line = np.zeros_like(m)
+    line[20, 36:50] = True  # a thin part the mask missed
+    img[line] = red
+    img = np.clip(img + np.random.default_rng(0).normal(0, 30, img.shape), 0, 255)
+    img = img.astype(np.uint8)
+    cand = halo | line
+    fgd, bgd = _gmm_model(red[::-1], 3000.0), _gmm_model(green[::-1], 3000.0)
+    col = img[cand][:, ::-1].astype(float)
+    per_pixel = gmm_log_likelihood(fgd, col) > gmm_log_likelihood(bgd, col)
+    got = _graph_verdict(img, m, cand, bgd, fgd, 3.0)
+    on_halo, on_line = halo[cand], line[cand]
+    assert per_pixel[on_halo].mean() > 0.5 and per_pixel[on_line].all()
+    assert got[on_halo].mean() < 0.5 * per_pixel[on_halo].mean()
+    assert got[on_line].all()
+    assert not _graph_verdict(img, m, cand, bgd, fgd, 0.0)[on_line].any()  # no guard
+
+
 def test_settled_widening_keeps_parts_that_join_early_and_refuses_a_later_neighbour():
     """Persistence (``settle_change``): widening from 1 spacing, a core whose two wings join
     over the first steps (the extent triples: not settled yet, so accepted) is whole and

@@ -123,6 +123,7 @@ class View:
     gt_mask: Optional[np.ndarray] = None  # [H, W] bool
     loader: Optional[Callable[[], np.ndarray]] = field(default=None, repr=False)
     source: str = ""  # file path or topic the image came from
+    compressed: bool = False  # the image went through lossy compression (JPEG) at this size
 
     def get_image(self) -> np.ndarray:
         """The RGB image, loading it on first use when the view was created lazily."""

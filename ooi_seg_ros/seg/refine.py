@@ -67,6 +67,16 @@ class RefineConfig:
     # at least one of the plane check's neighbour views sees there (background seen through
     # the hull lands elsewhere in the neighbours)
     hull_photo_depths: int = 8  # hull_photo: depths sampled across the ray's hull interval
+    hull_graph: str = "compressed"  # hull_add on lossy-compressed images: "compressed" (only
+    # views whose ``View.compressed`` is set) | "on" | "off". The colour test's verdict on an
+    # added pixel must also survive a graph cut (GrabCut's frozen models, the contrast-weighted
+    # smoothness) -- after JPEG the pixel just outside the outline has a colour blended with
+    # the object's, which the per-pixel test calls object (a 1-2 px halo all round); the cut
+    # leaves that halo out. Not on lossless images: there the added ring pixels are mostly
+    # true outline, and the cut costs recall (session 21, BENCHMARKS)
+    hull_graph_thin_px: float = 3.0  # hull_graph: where no mask pixel within this many pixels
+    # lies this deep inside the mask (a thin part, a part the mask missed) the per-pixel test
+    # decides alone: the cut's smoothness removes thin parts, which the additions bring back
     hull_max_voxels: int = 1_000_000  # hull_add: coarser voxels when the grid would be larger
     # (its cost: one projection of the grid per view; 1M and 4M gave the same masks +-0.001)
     plane_check: PlaneCheckConfig = field(default_factory=PlaneCheckConfig)  # pixels whose
@@ -480,6 +490,7 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
                        [v for v in views if v.key in models], MaskConfig(closing_kernel=1))
     out = dict(masks)
     added = 0
+    graph_views = 0
     hull_xyz = grid[keep]
     index = {v.key: i for i, v in enumerate(views)}
     for v in views:
@@ -495,6 +506,11 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
             continue
         col = v.get_image()[cand][:, ::-1].astype(float)  # BGR, as GrabCut saw it
         obj = gmm_log_likelihood(fgd, col) > gmm_log_likelihood(bgd, col)
+        if obj.any() and (cfg.hull_graph == "on"
+                          or (cfg.hull_graph == "compressed" and v.compressed)):
+            obj &= _graph_verdict(v.get_image(), m, cand, bgd, fgd,
+                                  float(cfg.hull_graph_thin_px))
+            graph_views += 1
         if cfg.hull_photo and photo is not None and obj.any():
             ys, xs = np.nonzero(cand)
             sel = np.nonzero(obj)[0]
@@ -513,7 +529,35 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
             out[v.key] = grown
             added += int(obj.sum())
     params["added_px"] = added
+    params["graph_views"] = graph_views
     return out, params
+
+
+def _graph_verdict(rgb: np.ndarray, mask: np.ndarray, cand: np.ndarray, bgd: np.ndarray,
+                   fgd: np.ndarray, thin_px: float) -> np.ndarray:
+    """[cand.sum()] bool: the candidate pixels a graph cut keeps, or that lie at thin parts.
+
+    One GrabCut iteration with the view's colour models frozen on the crop around mask and
+    candidates: mask pixels fixed object, candidates probably-object, the rest fixed
+    background. A candidate whose neighbourhood (``thin_px`` px) holds no mask pixel at least
+    ``thin_px`` px deep inside the mask is kept whatever the cut says (thin or missed parts).
+    """
+    import cv2
+    ys, xs = np.nonzero(mask | cand)
+    h, w = mask.shape
+    y0, y1 = max(0, int(ys.min()) - 3), min(h, int(ys.max()) + 4)
+    x0, x1 = max(0, int(xs.min()) - 3), min(w, int(xs.max()) + 4)
+    lab = np.full((y1 - y0, x1 - x0), cv2.GC_BGD, np.uint8)
+    lab[mask[y0:y1, x0:x1]] = cv2.GC_FGD
+    lab[cand[y0:y1, x0:x1]] = cv2.GC_PR_FGD
+    crop = np.ascontiguousarray(rgb[y0:y1, x0:x1, ::-1])  # BGR, as the models were fitted
+    cv2.grabCut(crop, lab, None, bgd.copy(), fgd.copy(), 1, cv2.GC_EVAL_FREEZE_MODEL)
+    keep = np.zeros_like(mask)
+    keep[y0:y1, x0:x1] = (lab == cv2.GC_FGD) | (lab == cv2.GC_PR_FGD)
+    r = max(int(np.ceil(thin_px)), 0)
+    depth = ndimage.distance_transform_edt(mask)
+    near = ndimage.grey_dilation(depth, footprint=np.ones((2 * r + 1, 2 * r + 1), bool))
+    return (keep | (near < thin_px))[cand]
 
 
 def point_support(xyz: np.ndarray, masks: dict[str, np.ndarray], views: list[View]
@@ -558,6 +602,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     """
     if not 0.0 <= float(cfg.edge_alpha) <= 1.0:
         raise ValueError(f"refine.edge_alpha={cfg.edge_alpha}; it is a coverage in [0, 1]")
+    if cfg.hull_graph not in ("compressed", "on", "off"):
+        raise ValueError(f"refine.hull_graph={cfg.hull_graph!r}; use compressed, on or off")
     if cfg.hull_add and not (0.0 <= float(cfg.hull_agree) < 1.0 and cfg.hull_voxel_px > 0):
         raise ValueError(f"refine.hull_agree={cfg.hull_agree} (a share in [0, 1)) and "
                          f"refine.hull_voxel_px={cfg.hull_voxel_px} (> 0) for hull_add")

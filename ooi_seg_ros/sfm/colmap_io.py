@@ -93,7 +93,8 @@ def load_colmap_model(sparse_dir: str | Path, images_dir: str | Path | None = No
         src = Path(images_dir) / im.name if images_dir is not None else Path(im.name)
         index_of[im.image_id] = len(views)
         views.append(View(key=Path(im.name).stem, stamp_ns=len(views), camera=cam, pose=pose,
-                          loader=_pil_loader(src, (cam.width, cam.height)), source=str(src)))
+                          loader=_pil_loader(src, (cam.width, cam.height)), source=str(src),
+                          compressed=src.suffix.lower() in (".jpg", ".jpeg")))
     if images_dir is not None:  # before any work: a missing photo once crashed the masks
         missing = [v.source for v in views if not Path(v.source).is_file()]
         if missing:
