@@ -227,6 +227,30 @@ def test_sfm_node_decodes_candidates_only_and_bridges_lost_poses(ctx):
         node.destroy_node()
 
 
+def test_sfm_node_forwards_jpeg_keyframes_on_the_compressed_topic(ctx):
+    """A keyframe that came as JPEG goes out raw on ``keyframe/image`` (as before) and
+    unchanged on ``keyframe/image/compressed`` (the segmentation's mark); png does not."""
+    from ooi_seg_ros.core.types import View
+
+    node = SfmNode(context=ctx, namespace=_ns())
+    try:
+        sent = {"raw": [], "jpeg": []}
+        node.pub_kf_image.publish = sent["raw"].append
+        node.pub_kf_lossy.publish = sent["jpeg"].append
+        cam = CameraIntrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+        rgb = np.zeros((48, 64, 3), np.uint8)
+        for k, fmt in enumerate(("jpeg", "png")):
+            stamp = 10 ** 9 + k
+            msg = msgconv.rgb_to_compressed(rgb, stamp, fmt=fmt)
+            view = View(str(stamp), stamp, cam, _orbit_pose(k, 12), rgb)
+            node._publish_keyframe(view, msg)
+        assert len(sent["raw"]) == 2 and [m.format for m in sent["jpeg"]] == ["jpeg"]
+        assert msgconv.stamp_to_ns(sent["jpeg"][0].header.stamp) == 10 ** 9
+    finally:
+        node.close()
+        node.destroy_node()
+
+
 @pytest.mark.slow
 def test_sfm_on_downscaled_copies_publishes_source_pixels(ctx):
     from ooi_seg_ros.sim import simulate_capture
@@ -305,6 +329,26 @@ def test_segmentation_node_keeps_downscaled_keyframes_within_budget(ctx):
         assert len(node.keyframes) == 3
         assert node.diag.counters["dropped_keyframe_budget"] == 3
         assert all(v.image.shape == (60, 80, 3) for v in node.keyframes.values())
+    finally:
+        node.destroy_node()
+
+
+def test_segmentation_node_marks_keyframes_that_came_as_jpeg(ctx):
+    """A JPEG copy on ``keyframe/image/compressed`` (as the SfM node forwards one) marks that
+    keyframe's view ``compressed`` for the refinement; png copies and the others stay
+    lossless."""
+    node = SegmentationNode(context=ctx, namespace=_ns(), parameter_overrides=[
+        Parameter("every_n_keyframes", value=0)])
+    try:
+        views = _blank_keyframes(node, 3, 12)
+        img = np.zeros((120, 160, 3), np.uint8)
+        node.on_kf_lossy(msgconv.rgb_to_compressed(img, views[1].stamp_ns, fmt="jpeg"))
+        node.on_kf_lossy(msgconv.rgb_to_compressed(img, views[2].stamp_ns, fmt="png"))
+        node.on_points(msgconv.xyzrgb_to_pointcloud2(np.zeros((4, 3)), np.zeros((4, 3),
+                                                     np.uint8), msgconv.ns_to_stamp(10 ** 9)))
+        got = {v.stamp_ns: v.compressed for v in node._inputs(observations=False)[0]}
+        assert got == {views[0].stamp_ns: False, views[1].stamp_ns: True,
+                       views[2].stamp_ns: False}
     finally:
         node.destroy_node()
 

@@ -1,8 +1,11 @@
 """``segmentation_node``: SfM cloud + keyframes in, OOI cloud, mesh and per-keyframe masks out.
 
 Subscribes: ``sfm/points`` and ``sfm/observations`` (latched), ``keyframe/image``,
-``keyframe/camera_info``, ``keyframe/pose`` (matched by exact stamp). Runs the segmentation
-pipeline (the same core code as ``ooi-seg segment``) every ``every_n_keyframes`` new keyframes
+``keyframe/camera_info``, ``keyframe/pose`` (matched by exact stamp), and
+``keyframe/image/compressed``: a JPEG copy there marks that keyframe's pixels as compressed
+(``View.compressed``; the refinement's ``hull_graph`` acts on those; its pixels are not
+used). Runs the segmentation pipeline (the same core code as ``ooi-seg segment``) every
+``every_n_keyframes`` new keyframes
 and on the ``~/segment`` service (std_srvs/Trigger), driven from a worker thread; the run itself
 goes to a worker *process* (``segment_worker``, ``seg.worker``) where the process may use two
 cores, so that it neither waits for the GIL behind the executor and the nodes beside it nor
@@ -63,7 +66,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.duration import Duration
 from rclpy.node import Node
 from scipy import ndimage
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
@@ -252,6 +255,7 @@ class _OoiCloud:
 
 
 OBS_WAIT_S = 2.0  # s a run waits for the observations published with its SfM cloud
+MAX_LOSSY_MARKS = 10_000  # JPEG keyframe marks kept (the newest stamps)
 LIVE_REFINE_MAX_SIDE = 256  # px, without the worker process; see SegmentationNode.__init__
 
 
@@ -322,7 +326,10 @@ class SegmentationNode(Node):
         self.cloud_run_times: collections.deque = collections.deque(maxlen=100)  # s, completed
 
         rq = reliable_qos(depth=self.cfg.qos_depth)
+        self._lossy: set[int] = set()  # stamps of keyframes that came as JPEG
         self.create_subscription(Image, "keyframe/image", self.on_kf_image, rq)
+        self.create_subscription(CompressedImage, "keyframe/image/compressed", self.on_kf_lossy,
+                                 rq)
         self.create_subscription(CameraInfo, "keyframe/camera_info", self.on_kf_info, rq)
         self.create_subscription(PoseStamped, "keyframe/pose", self.on_kf_pose, rq)
         self.create_subscription(PointCloud2, "sfm/points", self.on_points, latched_qos())
@@ -357,6 +364,15 @@ class SegmentationNode(Node):
     @guarded("dropped_keyframe_image")
     def on_kf_image(self, msg: Image) -> None:
         self._part(msgconv.stamp_to_ns(msg.header.stamp), "image", msgconv.image_to_rgb(msg))
+
+    @guarded("dropped_keyframe_image")
+    def on_kf_lossy(self, msg: CompressedImage) -> None:
+        """Marks the keyframe with this stamp as JPEG pixels (the pixels come raw)."""
+        if msgconv.is_lossy(msg):
+            with self._lock:
+                self._lossy.add(msgconv.stamp_to_ns(msg.header.stamp))
+                if len(self._lossy) > 4 * MAX_LOSSY_MARKS:  # marks of long-gone keyframes
+                    self._lossy = set(sorted(self._lossy)[-MAX_LOSSY_MARKS:])
 
     @guarded("dropped_keyframe_info")
     def on_kf_info(self, msg: CameraInfo) -> None:
@@ -451,6 +467,8 @@ class SegmentationNode(Node):
                                  self.assembler.factors[v.stamp_ns]) for v in views}
         with self._lock:
             points, seq = self._points_msg, self._points_seq
+            for v in views:
+                v.compressed = v.stamp_ns in self._lossy
         if points is None or len(views) < 2:
             return None
         obs = self._observations_for(points) if observations else None

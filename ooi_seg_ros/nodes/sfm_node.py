@@ -4,7 +4,9 @@ Subscribes (sensor-data QoS, remappable): ``image`` (sensor_msgs/Image), ``image
 (CompressedImage), ``camera_info``, ``pose`` (PoseStamped of the camera optical frame, or with
 ``pose_type: odometry`` nav_msgs/Odometry of the vehicle and the static ``mount_*`` transform).
 Publishes: ``keyframe/image``, ``keyframe/camera_info``, ``keyframe/pose`` (stamp = the source
-image's stamp), ``sfm/points`` (PointCloud2 xyz+rgb in ``frame_id``, latched) and
+image's stamp; a keyframe that came as a JPEG CompressedImage also goes out unchanged on
+``keyframe/image/compressed`` -- how the segmentation knows its pixels are JPEG's),
+``sfm/points`` (PointCloud2 xyz+rgb in ``frame_id``, latched) and
 ``sfm/observations`` (PointCloud2 rows point_index, stamp_sec, stamp_nanosec, u, v: which
 keyframe saw which point where — the segmentation uses visibility), and ``diagnostics``.
 
@@ -212,6 +214,8 @@ class SfmNode(Node):
                                      callback_group=poses)
         rq = reliable_qos(depth=self.cfg.keyframe_qos_depth)
         self.pub_kf_image = self.create_publisher(Image, "keyframe/image", rq)
+        self.pub_kf_lossy = self.create_publisher(CompressedImage, "keyframe/image/compressed",
+                                                  rq)
         self.pub_kf_info = self.create_publisher(CameraInfo, "keyframe/camera_info", rq)
         self.pub_kf_pose = self.create_publisher(PoseStamped, "keyframe/pose", rq)
         self.pub_points = self.create_publisher(PointCloud2, "sfm/points", latched_qos())
@@ -414,6 +418,8 @@ class SfmNode(Node):
 
     def _publish_keyframe(self, view: View, msg) -> None:
         stamp = msgconv.ns_to_stamp(view.stamp_ns)
+        if isinstance(msg, CompressedImage) and msgconv.is_lossy(msg):
+            self.pub_kf_lossy.publish(msg)  # before the image: the mark precedes the pixels
         if isinstance(msg, Image):  # as received: no re-encoding of the pixels
             self.pub_kf_image.publish(msg)
         else:
