@@ -67,6 +67,8 @@ VARIANTS = {
                                                     "behind_window": 0}}}),
     "ours-no-shifted": ("ours", {"refine": {"plane_check": {"shifted": False}}}),
     "ours-no-keep": ("ours", {"refine": {"plane_check": {"object_keep": False}}}),
+    # session 22: the default before the plane check's object guard
+    "ours-no-guard": ("ours", {"refine": {"plane_check": {"object_guard": False}}}),
     "ours+band": ("ours", {"refine": {"band_fraction": 0.3}}),
     "ours-bw5": ("ours", {"refine": {"plane_check": {"behind_window": 0}}}),
     "ours-ms256": ("ours", {"refine": {"max_side": 256}}),

@@ -545,6 +545,41 @@ def test_shifted_plane_check_and_object_keep_on_a_known_scene():
     assert keep_n > 0.05 * n_obj and keep_obj > 0.95 * keep_n
 
 
+def test_object_guard_keeps_patches_the_object_explains_out_of_the_floor():
+    """``object_guard``: a patch that the support plane explains no better than the object's
+    own depth does (low on the object, where the parallax between the two is small) does not
+    vote floor. With a loose NCC threshold (0.3) the plane calls some of the plant's pot
+    floor; the guard removes most of those pixels and keeps the floor around the pot."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    from ooi_seg_ros.sim import simulate_capture
+    w, h = 160, 120
+    sim = simulate_capture("tabletop", n_views=24, width=w, height=h, seed=0)
+    views = sim.capture.views
+    plane = np.array([0.0, 0.0, 1.0, -sim.scene.support_z])
+    target = np.mean(sim.capture.gt_ooi_points, axis=0)
+    counts = {}
+    for guard in (False, True):
+        pc = PlaneConsistency(views, plane, target, PlaneCheckConfig(
+            enabled=True, max_deg=35.0, neighbours=8, rank=3, min_ncc=0.3,
+            object_guard=guard))
+        pc.ooi_xyz = sim.capture.gt_ooi_points
+        obj = near_hit = 0
+        for i in range(0, 24, 3):
+            v = views[i]
+            fl = pc.floor_map(i, (0, h, 0, w))
+            dirs = undistorted_dirs(v.camera).reshape(h, w, 3) @ v.pose.R.T
+            p = v.pose.t + dirs * sim.depths[i][..., None]
+            on_plane = np.abs(p[..., 2] - sim.scene.support_z) < 1e-3
+            near = ndimage.binary_dilation(v.gt_mask, iterations=8) & ~v.gt_mask & on_plane
+            obj += (fl & v.gt_mask).sum()
+            near_hit += (fl & near).sum()
+        counts[guard] = (int(obj), int(near_hit))
+    print("object / floor near it called floor, without and with the guard", counts)
+    assert counts[False][0] >= 50  # the loose threshold does call some of the object floor
+    assert counts[True][0] < 0.7 * counts[False][0]
+    assert counts[True][1] >= 0.98 * counts[False][1]
+
+
 def _gmm_model(mean_bgr, var):
     """A one-component GrabCut colour model (OpenCV's [1, 65] layout, 5 components)."""
     a = np.zeros(65)

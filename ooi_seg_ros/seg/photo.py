@@ -29,9 +29,13 @@ the behind test smaller patches of its own.
 pixel straddles the outline and never matches: a pixel inside a matching patch shifted by
 ``shifted_reach`` px is floor when its own colour matches the warp within the view pair's
 noise (measured at the matching patches' centres) and better than at the object's depth.
-``object_keep`` is the converse, a map of silhouette pixels whose colour the object's depth
-(the nearest OOI point's disc over them) explains in the neighbours and the support plane
-does not; the refinement keeps them object whatever GrabCut's colour models say.
+``object_guard`` keeps a patch that matches through the support plane from voting floor where
+the object's own depth (the OOI discs covering the whole patch) explains it at least as well:
+low on the object, next to the floor, the two warps differ by little parallax (a tyre on
+the lawn). ``object_keep`` is the converse, a map of silhouette pixels whose colour the
+object's depth (the nearest OOI point's disc over them) explains in the neighbours and the
+support plane does not; the refinement keeps them object whatever GrabCut's colour models
+say.
 
 Measured against exact masks (sim aircraft / plant, every 6th view, NCC > 0.8, two views):
 0.3-0.5% of object pixels but 38-50% of the background within 15 px of the object are called
@@ -105,6 +109,11 @@ class PlaneCheckConfig:
     # also votes ground (k-NN against the rest of the mask and the floor found outside it).
     # Off: IoU up on all 33 benchmark captures (bicycle +0.014) but recall down ~0.0006 on
     # the aircraft, which takes the demo bag to 0.9698 (BENCHMARKS.md, session 11)
+    object_guard: bool = False  # support plane: a matching patch does not vote floor where
+    # the object's depth explains it at least as well: where OOI discs cover the whole patch,
+    # the neighbour is also sampled at the discs' depth, and a patch whose NCC there is >= its
+    # NCC through the plane stays undecided (low on the object, next to the floor, both warps
+    # line up: a tyre on the lawn, a stool's legs). Not applied to walls or the behind test
     behind_window: int = 0  # behind: side (px) of its compared patches; 0 = ``window``
     # (background seen between leaves or spokes is often narrower than the planes' patch, and
     # a patch that straddles the object never matches)
@@ -347,7 +356,7 @@ class PlaneConsistency:
         ga = _grey(a)
 
         obj = None  # the rays at the depth of the OOI discs covering them
-        if (cfg.shifted or cfg.object_keep) and self.ooi_xyz is not None:
+        if (cfg.shifted or cfg.object_keep or cfg.object_guard) and self.ooi_xyz is not None:
             zo = self.disc_depth(i, box, ga.shape).reshape(-1)
             has = np.isfinite(zo)
             dirs = self._crop_dirs(i, box, None if shape is None else ga.shape)
@@ -357,7 +366,7 @@ class PlaneConsistency:
         pixel = np.zeros(ga.shape, np.int32)  # pixel_votes: per-pixel floor votes
 
         def consistent(X: np.ndarray, hit: np.ndarray, rank: int, win: int,
-                       support: bool = False) -> np.ndarray:
+                       support: bool = False, guard: bool = False) -> np.ndarray:
             """Textured pixels whose ``win``-px patch matches in >= ``rank`` neighbours when
             warped through the 3D points ``X`` (``support``: also the shifted-patch floor and
             the object-keep votes of the support plane)."""
@@ -383,13 +392,23 @@ class PlaneConsistency:
                 diff = box_mean(pix)
                 whole = box_mean(ok.astype(np.float32)) > 0.999  # patch all inside view j
                 match = whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
+                bo = oko = None  # the neighbour at the object's depth (sampled once)
+                if guard and obj is not None:
+                    bo, oko = self.sample(j, obj[0], obj[1], ga.shape)
+                    go = _grey(bo)
+                    mo = box_mean(go)
+                    vo = np.maximum(box_mean(go * go) - mo * mo, 0.0)
+                    ncc_o = (box_mean(ga * go) - ma * mo) / np.sqrt(np.maximum(va * vo, 1e-6))
+                    whole_o = box_mean(oko.astype(np.float32)) > 0.999
+                    match &= ~(whole_o & (ncc_o >= ncc))
                 votes += match
                 if not support or obj is None:
                     continue
                 tol = self._pixel_tol(match & textured, pix)
                 if tol is None:
                     continue
-                bo, oko = self.sample(j, obj[0], obj[1], ga.shape)
+                if bo is None:
+                    bo, oko = self.sample(j, obj[0], obj[1], ga.shape)
                 pix_o = _grey(np.abs(a - bo))  # the same at the object's depth
                 if cfg.shifted:
                     reach = int(min(max(0, cfg.shifted_reach), win // 2))
@@ -410,7 +429,10 @@ class PlaneConsistency:
         fl = np.zeros(ga.shape, bool)
         for k in range(len(self.planes)):
             X, hit = self.plane_points(i, box, k, shape)
-            fl |= consistent(X, hit, cfg.rank, cfg.window, support=(k == 0))
+            # the object guard on the support plane only: a wall lies clear of the object by
+            # its radius (``background_planes``), so no part of the object is near it
+            fl |= consistent(X, hit, cfg.rank, cfg.window, support=(k == 0),
+                             guard=cfg.object_guard and k == 0)
         if cfg.behind and self.behind_xyz is not None and self.ooi_xyz is not None:
             X, hit = self.behind_points(i, box, ga.shape)
             if hit.any():

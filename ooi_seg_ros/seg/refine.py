@@ -619,7 +619,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                                  cfg.plane_check)
         if cfg.plane_check.behind:
             floor.behind_xyz = background.xyz
-        if cfg.plane_check.behind or cfg.plane_check.shifted or cfg.plane_check.object_keep:
+        if (cfg.plane_check.behind or cfg.plane_check.shifted or cfg.plane_check.object_keep
+                or cfg.plane_check.object_guard):
             floor.ooi_xyz = ooi.xyz
     cache: dict = {}
     models: Optional[dict] = {} if cfg.hull_add else None
