@@ -69,6 +69,9 @@ VARIANTS = {
     "ours-no-keep": ("ours", {"refine": {"plane_check": {"object_keep": False}}}),
     # session 22: the default before the plane check's object guard
     "ours-no-guard": ("ours", {"refine": {"plane_check": {"object_guard": False}}}),
+    # session 23: the default before the per-pixel floor votes; the looser vote tried first
+    "ours-no-pixel-votes": ("ours", {"refine": {"plane_check": {"pixel_votes": False}}}),
+    "ours-pv-loose": ("ours", {"refine": {"plane_check": {"pixel_strict": False}}}),
     "ours+band": ("ours", {"refine": {"band_fraction": 0.3}}),
     "ours-bw5": ("ours", {"refine": {"plane_check": {"behind_window": 0}}}),
     "ours-ms256": ("ours", {"refine": {"max_side": 256}}),

@@ -580,6 +580,47 @@ def test_object_guard_keeps_patches_the_object_explains_out_of_the_floor():
     assert counts[True][1] >= 0.98 * counts[False][1]
 
 
+def test_strict_pixel_votes_need_the_object_depth_to_fail():
+    """``pixel_strict``: a per-pixel floor vote also needs the object's depth to fail to
+    explain the pixel (not merely to explain it worse). Its votes are a subset of the loose
+    ones; on the tabletop's exact geometry it roughly halves the plant's pixels voted floor
+    and keeps most of the floor's votes next to the pot."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    from ooi_seg_ros.sim import simulate_capture
+    w, h = 160, 120
+    sim = simulate_capture("tabletop", n_views=24, width=w, height=h, seed=0)
+    views = sim.capture.views
+    plane = np.array([0.0, 0.0, 1.0, -sim.scene.support_z])
+    target = np.mean(sim.capture.gt_ooi_points, axis=0)
+    pts = sim.capture.gt_ooi_points
+    pts = pts[np.random.default_rng(0).choice(len(pts), min(600, len(pts)), replace=False)]
+    counts, maps = {}, {}
+    for strict in (False, True):
+        pc = PlaneConsistency(views, plane, target, PlaneCheckConfig(
+            enabled=True, max_deg=35.0, neighbours=8, rank=3, shifted=True,
+            pixel_votes=True, pixel_strict=strict))
+        pc.ooi_xyz = pts
+        obj = near_hit = 0
+        for i in range(0, 24, 3):
+            v = views[i]
+            pc.floor_map(i, (0, h, 0, w))
+            pf = pc.pixel_floor[(i, (0, h, 0, w))]
+            maps[strict, i] = pf
+            dirs = undistorted_dirs(v.camera).reshape(h, w, 3) @ v.pose.R.T
+            p = v.pose.t + dirs * sim.depths[i][..., None]
+            on_plane = np.abs(p[..., 2] - sim.scene.support_z) < 1e-3
+            near = ndimage.binary_dilation(v.gt_mask, iterations=8) & ~v.gt_mask & on_plane
+            obj += (pf & v.gt_mask).sum()
+            near_hit += (pf & near).sum()
+        counts[strict] = (int(obj), int(near_hit))
+    print("object / floor near it voted floor pixel by pixel, loose and strict", counts)
+    for i in range(0, 24, 3):
+        assert not (maps[True, i] & ~maps[False, i]).any()
+    assert counts[False][0] >= 30  # the loose vote does call some of the plant floor
+    assert counts[True][0] < 0.7 * counts[False][0]
+    assert counts[True][1] >= 0.6 * counts[False][1] > 0
+
+
 def _gmm_model(mean_bgr, var):
     """A one-component GrabCut colour model (OpenCV's [1, 65] layout, 5 components)."""
     a = np.zeros(65)

@@ -99,7 +99,8 @@ def preset(method: str) -> dict:
                                            "shifted": True, "object_keep": True,
                                            "behind_window": 3, "neighbours": 8,
                                            "max_deg": 35.0, "rank": 3,
-                                           "keep_discs": True, "object_guard": True}}}
+                                           "keep_discs": True, "object_guard": True,
+                                           "pixel_votes": True}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 
