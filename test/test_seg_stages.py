@@ -172,6 +172,13 @@ def test_splat_discs_with_centres_outside_the_image():
     assert m.shape == (30, 40)
     assert m[10, 0] and m[0, 25] and m[29, 39] and m[15, 20]
     assert not m[15, 10]
+    # a point just in front of the camera plane projects to a huge finite uv: ignored quietly
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        far = _splat(np.vstack([uv, [[1e25, 5.0], [-3e30, 1e40]]]), np.r_[rad, 40.0, 40.0],
+                     30, 40)
+    assert np.array_equal(far, m)
 
 
 def test_support_band_covers_a_rough_floor_skin():

@@ -139,6 +139,10 @@ def _splat(uv: np.ndarray, rad: np.ndarray, h: int, w: int) -> np.ndarray:
     the disc area (a 40-px disc costs what a 1-px disc costs).
     """
     mask = np.zeros((h, w), bool)
+    # a point just in front of the camera plane projects to a huge (finite) uv that no integer
+    # holds; such a disc is nowhere near the image (radii are capped at max_splat_px)
+    near = np.all(np.abs(uv) < 1e9, axis=1)
+    uv, rad = uv[near], rad[near]
     ui, vi = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
     inside = (ui >= -rad) & (ui < w + rad) & (vi >= -rad) & (vi < h + rad)
     ui, vi, rad = ui[inside], vi[inside], rad[inside]
