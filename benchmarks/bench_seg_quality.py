@@ -72,6 +72,9 @@ VARIANTS = {
     # session 23: the default before the per-pixel floor votes; the looser vote tried first
     "ours-no-pixel-votes": ("ours", {"refine": {"plane_check": {"pixel_votes": False}}}),
     "ours-pv-loose": ("ours", {"refine": {"plane_check": {"pixel_strict": False}}}),
+    # session 24: splat shapes that hug thin parts; radii of stray points (both trade recall)
+    "ours-ellipse": ("ours", {"masks": {"splat_shape": "ellipse"}}),
+    "ours-local-radii": ("ours", {"masks": {"splat_local": True}}),
     "ours+band": ("ours", {"refine": {"band_fraction": 0.3}}),
     "ours-bw5": ("ours", {"refine": {"plane_check": {"behind_window": 0}}}),
     "ours-ms256": ("ours", {"refine": {"max_side": 256}}),
@@ -220,7 +223,8 @@ def main() -> None:
     ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2",
                     help="SfM cache folder (v2: clouds of the SfM since commit 118fd9a)")
     ap.add_argument("--refresh", action="store_true", help="recompute cached SfM clouds")
-    ap.add_argument("--variants", nargs="+", default=["paper", "ours"], choices=list(VARIANTS))
+    ap.add_argument("--variants", nargs="*", default=["paper", "ours"], choices=list(VARIANTS),
+                    help="named variants (may be empty when --set gives the variants)")
     ap.add_argument("--set", action="append", default=[], metavar="JSON",
                     help='extra variant "name={json overrides of ours}" (repeatable)')
     ap.add_argument("--view-step", type=int, default=1,

@@ -181,6 +181,70 @@ def test_splat_discs_with_centres_outside_the_image():
     assert np.array_equal(far, m)
 
 
+def test_ellipse_splats_hug_a_thin_tube_and_stay_discs_on_a_surface():
+    """Sparse points along a thin rod: the ellipse splat narrows across the rod (a fraction
+    of the disc's area, every point still drawn, the rod's true width covered); on a
+    sphere's surface the ellipsoid stays the disc's sphere."""
+    from ooi_seg_ros.seg.masks import _splat_ellipses, point_covariances, point_radii
+    from ooi_seg_ros.seg.masks import _splat
+    # a single ellipse: semi-axes 10 (x) and 3 (y) px centred on the pixel nearest its centre
+    m = _splat_ellipses(np.array([[30.2, 20.0]]), np.array([[[100.0, 0], [0, 9.0]]]), 40, 60)
+    assert m[20, 20] and m[20, 40] and m[23, 30] and not m[24, 30] and not m[20, 41]
+    assert abs(m.sum() - np.pi * 30) < 12
+    # round shapes draw exactly ``_splat``'s discs
+    rng = np.random.default_rng(2)
+    uv = rng.uniform(-5, 65, (30, 2))
+    rad = np.where(rng.random(30) < 0.2, 0.0, 1.2 ** rng.integers(0, 10, 30))  # on its bins
+    assert np.array_equal(_splat_ellipses(uv, rad[:, None, None] ** 2 * np.eye(2), 40, 60),
+                          _splat(uv, np.maximum(rad * 1.0001, 0.5), 40, 60))
+    rng = np.random.default_rng(3)
+    t = np.sort(rng.uniform(-0.5, 0.5, 40))
+    rod = np.column_stack([t, 0.005 * rng.normal(size=40), 0.5 + 0.005 * rng.normal(size=40)])
+    r = point_radii(rod, 4, 0.6)
+    cov = point_covariances(rod, r, 8, 2.0)
+    ax = np.sqrt(np.linalg.eigvalsh(cov))  # ascending semi-axes
+    assert np.allclose(ax[:, 2], r)
+    assert np.median(ax[:, 0] / r) < 0.5
+    cam = CameraIntrinsics(160, 120, 150.0, 150.0, 79.5, 59.5)
+    views = [View(v.key, v.stamp_ns, cam, v.pose) for v in _ring_views()]
+    cfg = MaskConfig(mode="points", closing_kernel=1)
+    disc = point_masks(rod, r, views, cfg)
+    ell = point_masks(rod, r, views, cfg, cov=cov)
+    for v in views:
+        uv, z = project_distorted(rod, v.camera, v.pose)
+        ui, vi = np.rint(uv).astype(int).T
+        inside = (ui >= 0) & (ui < 160) & (vi >= 0) & (vi < 120)
+        assert ell[v.key][vi[inside], ui[inside]].all()
+    sph = point_masks(rod, r, views, cfg, cov=r[:, None, None] ** 2 * np.eye(3))
+    assert all(np.array_equal(sph[k], disc[k]) for k in disc)
+    area_d = sum(m.sum() for m in disc.values())
+    area_e = sum(m.sum() for m in ell.values())
+    assert area_e < 0.7 * area_d
+    ball = _sphere(600, r=0.4)
+    rs = point_radii(ball, 4, 0.6)
+    cs = point_covariances(ball, rs, 8, 2.0)
+    axs = np.sqrt(np.linalg.eigvalsh(cs))
+    assert np.median(axs[:, 0] / rs) > 0.99
+
+
+def test_local_radii_shrink_a_stray_point_not_an_evenly_sparse_part():
+    """``point_radii(local=True)``: a stray point 2.5 cm off a dense patch (1 cm spacing) gets
+    the patch's spacing instead of a disc reaching across the gap; the points of an evenly
+    sparse row keep their radii."""
+    from ooi_seg_ros.seg.masks import point_radii
+    g = np.arange(10) * 0.01
+    patch = np.column_stack([np.repeat(g, 10), np.tile(g, 10), np.zeros(100)])
+    stray = np.array([[0.115, 0.05, 0.0]])
+    row = np.column_stack([np.arange(8) * 0.1 + 1.0, np.zeros(8), np.zeros(8)])
+    xyz = np.vstack([patch, stray, row])
+    plain = point_radii(xyz, 4, 1.0)
+    local = point_radii(xyz, 4, 1.0, local=True, local_factor=1.5)
+    assert plain[100] > 0.02 and local[100] < 0.015
+    assert np.allclose(local[:100], plain[:100]) and np.allclose(local[101:], plain[101:])
+    # with a factor only radii above that multiple of the neighbours' are replaced
+    assert np.isclose(point_radii(xyz, 4, 1.0, local=True, local_factor=10.0)[100], plain[100])
+
+
 def test_support_band_covers_a_rough_floor_skin():
     """A lawn-like floor scatters points up to 4 cm above and below the plane; an object
     stands on it. The band measured below the plane removes the skin, not the object."""

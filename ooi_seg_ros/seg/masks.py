@@ -14,6 +14,7 @@ that see them, and re-projects it, so a blob present in only a few views does no
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 from scipy import ndimage
@@ -35,6 +36,16 @@ class MaskConfig:
     splat_scale: float = 1.0  # points mode: disc radius in units of the point's k-NN distance
     splat_k: int = 4  # points mode: neighbour rank that defines a point's spacing
     max_splat_px: int = 40  # points mode: cap on a disc's radius in pixels
+    splat_local: bool = False  # points mode: a radius above ``splat_local_factor`` x its
+    # neighbours' median radius takes that median (``point_radii(local=True)``): a stray point
+    # by a denser part. Measured, not the default: IoU up, recall down (BENCHMARKS, session 24)
+    splat_local_factor: float = 1.5
+    splat_shape: str = "disc"  # points mode: "disc" (a sphere of the k-NN radius) | "ellipse"
+    # (the sphere squeezed across the local direction where the point's neighbours lie along a
+    # line -- a tube, a spoke, a wire: see ``point_covariances``; measured, not the default)
+    splat_pca_k: int = 8  # ellipse: neighbours whose spread gives the local direction
+    splat_cross_sigmas: float = 2.0  # ellipse: half-width across the line in standard
+    # deviations of the neighbours' spread across it (never wider than the disc)
     hull_consistency: bool = False  # carve a voxel visual hull and re-project it
     hull_resolution: int = 96  # voxels along the longest side of the hull's box
     hull_min_agree: float = 0.9  # share of seeing views whose masks must contain a voxel
@@ -213,27 +224,147 @@ def alpha_masks(xyz: np.ndarray, radii: np.ndarray, views: list[View], cfg: Mask
     return out
 
 
-def point_radii(xyz: np.ndarray, k: int, scale: float) -> np.ndarray:
-    """World-space disc radius [N] of every point: ``scale`` x distance to its k-th neighbour."""
+def point_radii(xyz: np.ndarray, k: int, scale: float, local: bool = False,
+                local_factor: float = 1.0) -> np.ndarray:
+    """World-space disc radius [N] of every point: ``scale`` x distance to its k-th neighbour.
+
+    ``local``: a spacing above ``local_factor`` x the median spacing of the point's k
+    neighbours is replaced by that median -- a stray point beside a denser part (a grass tuft
+    at a tyre) measures the gap to that part, not a surface, and gets that part's spacing; in
+    an evenly sparse part nothing changes.
+    """
     if len(xyz) < 2:
         return np.zeros(len(xyz))
     k = int(min(k, len(xyz) - 1))
-    d, _ = cKDTree(xyz).query(xyz, k=k + 1)
+    d, idx = cKDTree(xyz).query(xyz, k=k + 1)
     r = d[:, -1]
     med = np.median(r)
-    return scale * np.minimum(r, 3 * med)  # isolated points do not get huge discs
+    r = np.minimum(r, 3 * med)  # isolated points do not get huge discs
+    if local:
+        nb = np.median(r[idx[:, 1:]], axis=1)
+        r = np.where(r > local_factor * nb, nb, r)
+    return scale * r
+
+
+def point_covariances(xyz: np.ndarray, radii: np.ndarray, k: int, cross_sigmas: float
+                      ) -> np.ndarray:
+    """World-space splat shapes [N,3,3] (covariance-like: the ellipsoid is x^T C^-1 x <= 1).
+
+    Along the principal direction of the point's ``k`` nearest neighbours the semi-axis is the
+    disc radius; across it, ``cross_sigmas`` x the neighbours' spread in the second principal
+    direction, capped at the disc radius. On a surface or in a blob the second spread is as
+    large as the first and the ellipsoid stays the disc's sphere; on a thin part (a tube whose
+    few SfM points lie along a line) it narrows to the tube's width, so the silhouette stops
+    claiming a disc radius of background on both sides of every spoke.
+    """
+    n = len(xyz)
+    eye = np.eye(3)
+    if n < 3:
+        return radii[:, None, None] ** 2 * eye
+    k = int(min(max(k, 2), n - 1))
+    _, idx = cKDTree(xyz).query(xyz, k=k + 1)
+    nb = xyz[idx]  # [N,k+1,3] (the point itself included)
+    off = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", off, off) / (k + 1)
+    lam, vec = np.linalg.eigh(cov)  # ascending
+    e1 = vec[:, :, 2]
+    cross = np.minimum(radii, cross_sigmas * np.sqrt(np.maximum(lam[:, 1], 0.0)))
+    along = np.einsum("ni,nj->nij", e1, e1)
+    return (radii ** 2)[:, None, None] * along + (cross ** 2)[:, None, None] * (eye - along)
+
+
+def _splat_ellipses(uv: np.ndarray, cov: np.ndarray, h: int, w: int,
+                    chunk: int = 4_000_000) -> np.ndarray:
+    """Union of filled ellipses {d : d^T cov^-1 d <= 1} (px) around the pixels nearest ``uv``
+    (centred on whole pixels, as ``_splat`` centres its discs) as a bool [h,w] image.
+
+    Each centre's own pixel is drawn too (a zero ``cov`` draws only that). Ellipses are
+    grouped by the half-size of their bounding box (powers of two) and each group is
+    evaluated on its own offset grid, in chunks of at most ``chunk`` pixel tests.
+    """
+    mask = np.zeros((h, w), bool)
+    a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    det = a * c - b * b
+    half = np.sqrt(np.maximum(a, c))  # bounding box half-sizes in x and y are sqrt(a), sqrt(c)
+    ok = (np.all(np.abs(uv) < 1e9, axis=1) & (uv[:, 0] >= -half)
+          & (uv[:, 0] < w + half) & (uv[:, 1] >= -half) & (uv[:, 1] < h + half))
+    if not ok.any():
+        return mask
+    # every centre's own pixel, however thin its ellipse (the point itself is object)
+    cu, cv = np.rint(uv[ok, 0]).astype(int), np.rint(uv[ok, 1]).astype(int)
+    own = (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
+    mask[cv[own], cu[own]] = True
+    shaped = det[ok] > 0
+    if not shaped.any():
+        return mask
+    cu, cv = cu[shaped], cv[shaped]
+    a, b, c = a[ok][shaped], b[ok][shaped], c[ok][shaped]
+    det, half = det[ok][shaped], half[ok][shaped]
+    ia, ib, ic = c / det, -b / det, a / det  # inverse
+    level = np.ceil(np.log2(np.maximum(half, 1.0))).astype(int)
+    for lv in np.unique(level):
+        R = 2 ** int(lv)
+        sel = np.flatnonzero(level == lv)
+        d = np.arange(-R, R + 1)
+        per = (2 * R + 1) ** 2
+        for s0 in range(0, len(sel), max(1, chunk // per)):
+            s = sel[s0:s0 + max(1, chunk // per)]
+            dx = d[None, None, :].astype(float)  # [1,1,2R+1] (pixel-centred, as ``_splat``)
+            dy = d[None, :, None].astype(float)  # [1,2R+1,1]
+            q = (ia[s, None, None] * dx * dx + 2 * ib[s, None, None] * dx * dy
+                 + ic[s, None, None] * dy * dy)
+            nn, yy, xx = np.nonzero(q <= 1.0 + 1e-9)
+            px, py = cu[s][nn] + d[xx], cv[s][nn] + d[yy]
+            inside = (px >= 0) & (px < w) & (py >= 0) & (py < h)
+            mask[py[inside], px[inside]] = True
+    return mask
+
+
+def _project_covariances(cov: np.ndarray, xyz: np.ndarray, cam: CameraIntrinsics,
+                         pose: Pose, max_px: float) -> np.ndarray:
+    """Image-plane shapes [N,2,2] (px^2) of world ellipsoids ``cov`` at ``xyz``: the
+    ellipsoid's extent across the viewing axis scaled by f / depth -- the scaled-orthographic
+    approximation the discs use (lens distortion moves the centre, not the shape).
+
+    Sized as ``_splat`` sizes its discs, so a sphere draws exactly the disc: the major
+    semi-axis is capped at ``max_px`` and rounded down to the disc's bins (ratio 1.2), the
+    minor one scaled with it and kept at least half a pixel (a thin part stays a connected
+    line); a major semi-axis under one pixel draws the centre pixel only (zero shape).
+    """
+    R, t = pose.world_to_cam()
+    pc = xyz @ R.T + t
+    z = np.where(pc[:, 2] > 1e-9, pc[:, 2], 1e-9)
+    M = R[None, :2, :] * np.stack([cam.fx / z, cam.fy / z], 1)[:, :, None]  # [N,2,3]
+    lam, vec = np.linalg.eigh(M @ cov @ np.transpose(M, (0, 2, 1)))  # ascending
+    major = np.minimum(np.sqrt(np.maximum(lam[:, 1], 0.0)), max_px)
+    with np.errstate(divide="ignore"):
+        binned = np.where(major >= 1.0, 1.2 ** np.floor(np.log(major) / np.log(1.2)), 0.0)
+    f = np.divide(binned, major, out=np.zeros_like(major), where=major > 0)
+    minor = np.sqrt(np.maximum(lam[:, 0], 0.0)) * np.minimum(
+        1.0, np.divide(major, np.sqrt(np.maximum(lam[:, 1], 1e-30))))
+    minor = np.where(binned > 0, np.maximum(minor * f, 0.5), 0.0)
+    minor = np.minimum(minor, binned)
+    e0, e1 = vec[:, :, 0], vec[:, :, 1]
+    return ((minor ** 2)[:, None, None] * np.einsum("ni,nj->nij", e0, e0)
+            + (binned ** 2)[:, None, None] * np.einsum("ni,nj->nij", e1, e1))
 
 
 def point_masks(xyz: np.ndarray, radii: np.ndarray, views: list[View], cfg: MaskConfig,
-                finish: bool = True) -> dict[str, np.ndarray]:
-    """Splat points with world radii into every view: {view.key: bool [H,W]}."""
+                finish: bool = True, cov: Optional[np.ndarray] = None
+                ) -> dict[str, np.ndarray]:
+    """Splat points with world radii (or world ellipsoids ``cov``) into every view:
+    {view.key: bool [H,W]}."""
     out = {}
     for v in views:
         c = v.camera
         uv, z = project_distorted(xyz, c, v.pose)
         ok = (z > 1e-9) & np.isfinite(uv).all(1)
-        rpx = np.clip(radii[ok] * c.fx / z[ok], 0.5, cfg.max_splat_px)
-        m = _splat(uv[ok], rpx, c.height, c.width)
+        if cov is None:
+            rpx = np.clip(radii[ok] * c.fx / z[ok], 0.5, cfg.max_splat_px)
+            m = _splat(uv[ok], rpx, c.height, c.width)
+        else:
+            c2 = _project_covariances(cov[ok], xyz[ok], c, v.pose, cfg.max_splat_px)
+            m = _splat_ellipses(uv[ok], c2, c.height, c.width)
         out[v.key] = _finish(m, cfg) if finish else m
     return out
 
@@ -284,9 +415,18 @@ def render_masks(views: list[View], cfg: MaskConfig, mesh: TriMesh, xyz: np.ndar
     if cfg.mode == "mesh":
         masks = mesh_masks(mesh, views, cfg)
     elif cfg.mode == "points":
-        radii = point_radii(xyz, cfg.splat_k, cfg.splat_scale)
+        radii = point_radii(xyz, cfg.splat_k, cfg.splat_scale, cfg.splat_local,
+                            cfg.splat_local_factor)
         params["median_radius"] = float(np.median(radii)) if len(radii) else 0.0
-        masks = point_masks(xyz, radii, views, cfg)
+        cov = None
+        if cfg.splat_shape == "ellipse":
+            cov = point_covariances(xyz, radii, cfg.splat_pca_k, cfg.splat_cross_sigmas)
+            if len(cov):
+                thin = np.sqrt(np.linalg.eigvalsh(cov)[:, 0]) < 0.5 * radii
+                params["thin_fraction"] = float(thin.mean())
+        elif cfg.splat_shape != "disc":
+            raise ValueError(f"masks.splat_shape={cfg.splat_shape!r}; use disc or ellipse")
+        masks = point_masks(xyz, radii, views, cfg, cov=cov)
     elif cfg.mode == "alpha":
         radii = point_radii(xyz, cfg.splat_k, cfg.splat_scale)
         params["median_radius"] = float(np.median(radii)) if len(radii) else 0.0
