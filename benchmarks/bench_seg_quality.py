@@ -72,6 +72,8 @@ VARIANTS = {
     # session 23: the default before the per-pixel floor votes; the looser vote tried first
     "ours-no-pixel-votes": ("ours", {"refine": {"plane_check": {"pixel_votes": False}}}),
     "ours-pv-loose": ("ours", {"refine": {"plane_check": {"pixel_strict": False}}}),
+    # session 24: no chroma-subsampling measure (unflagged JPEG pixels then get no graph cut)
+    "ours-no-blend": ("ours", {"refine": {"blend_detect": False}}),
     # session 24: splat shapes that hug thin parts; radii of stray points (both trade recall)
     "ours-ellipse": ("ours", {"masks": {"splat_shape": "ellipse"}}),
     "ours-local-radii": ("ours", {"masks": {"splat_local": True}}),
@@ -235,6 +237,9 @@ def main() -> None:
     ap.add_argument("--json", help="write all per-run metrics here")
     ap.add_argument("--jpeg", type=int, default=0, metavar="Q",
                     help="images through JPEG at quality Q first (SfM cached apart)")
+    ap.add_argument("--unflagged", action="store_true",
+                    help="with --jpeg: clear the views' compressed flag, as for JPEG (or video) "
+                    "frames a driver decodes and publishes as raw Images")
     ap.add_argument("--sim-set", type=json.loads, default=None, metavar="JSON",
                     help='SimConfig options of the captures, e.g. \'{"shade_subsamples": true}\''
                          " (cached apart)")
@@ -253,6 +258,10 @@ def main() -> None:
             cap, cloud, info = load_case(scene, seed, args.views, (w, h), args.cloud,
                                          Path(args.cache), args.refresh, args.sfm_set,
                                          args.jpeg, args.sim_set)
+            if args.unflagged:
+                import dataclasses
+                cap = dataclasses.replace(cap, views=[dataclasses.replace(v, compressed=False)
+                                                      for v in cap.views])
             keys = None
             if args.view_step > 1:
                 keys = [v.key for v in cap.views[::args.view_step]]

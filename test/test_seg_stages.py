@@ -751,6 +751,45 @@ def test_hull_additions_bring_back_a_part_other_views_hold():
                              RefineConfig(hull_add=True, hull_photo=True), photo)
     assert not (out2[views[0].key] & ~got).any()
     assert out2[views[0].key][cut].mean() > 0.8
+    # lossless images: no graph cut; the same pixels decoded from JPEG and handed over as raw
+    # images (no ``compressed`` flag) are measured as chroma-subsampled and get the cut
+    assert p["graph_views"] == 0 and not p["blended"]
+    import io
+    from PIL import Image
+
+    def jpeg(img):
+        buf = io.BytesIO()
+        Image.fromarray(img).save(buf, "JPEG", quality=90)
+        return np.asarray(Image.open(buf).convert("RGB"))
+    decoded = [View(v.key, v.stamp_ns, v.camera, v.pose, jpeg(v.get_image())) for v in views]
+    _, pj = hull_additions(masks, decoded, xyz, models, RefineConfig(hull_add=True))
+    assert pj["blended"] and pj["graph_views"] > 0 and pj["chroma_sharpness"] < 0.9
+    _, pn = hull_additions(masks, decoded, xyz, models,
+                           RefineConfig(hull_add=True, blend_detect=False))
+    assert pn["graph_views"] == 0
+
+
+@pytest.mark.parametrize("scene", ["aircraft", "tabletop", "bicycle", "toycar", "stool"])
+def test_chroma_sharpness_tells_decoded_jpeg_from_full_colour(scene):
+    """Every simulator scene: its renders measure ~1 (colour as sharp as brightness), the
+    same renders through JPEG q90 (4:2:0 chroma) under ``blend_max``; grey and tiny images
+    measure nothing."""
+    import io
+    from PIL import Image
+    from ooi_seg_ros.seg.refine import RefineConfig, chroma_sharpness
+    from ooi_seg_ros.sim import simulate_capture
+    lim = RefineConfig().blend_max
+    sim = simulate_capture(scene, n_views=3, width=160, height=120, seed=1)
+    for v in sim.capture.views:
+        img = np.asarray(v.image)[..., :3]
+        buf = io.BytesIO()
+        Image.fromarray(img).save(buf, "JPEG", quality=90)
+        dec = np.asarray(Image.open(buf).convert("RGB"))
+        assert chroma_sharpness(img) > lim + 0.05
+        assert chroma_sharpness(dec) < lim - 0.05
+    grey = np.repeat(np.random.default_rng(0).integers(0, 255, (50, 60, 1)), 3, 2)
+    assert chroma_sharpness(grey.astype(np.uint8)) is None
+    assert chroma_sharpness(np.zeros((8, 8, 3), np.uint8)) is None
 
 
 def test_graph_verdict_drops_a_ragged_halo_and_keeps_a_thin_part():

@@ -4,9 +4,10 @@ Subscribes: ``sfm/points`` and ``sfm/observations`` (latched), ``keyframe/image`
 ``keyframe/camera_info``, ``keyframe/pose`` (matched by exact stamp), and
 ``keyframe/image/compressed``: a JPEG copy there marks that keyframe's pixels as compressed
 (``View.compressed``; the refinement's ``hull_graph`` acts on those; its pixels are not
-used). Runs the segmentation pipeline (the same core code as ``ooi-seg segment``) every
-``every_n_keyframes`` new keyframes
-and on the ``~/segment`` service (std_srvs/Trigger), driven from a worker thread; the run itself
+used); raw keyframes whose colour measures chroma-subsampled (decoded JPEG or video,
+``refine.blend_detect``) are treated the same. Runs the segmentation pipeline (the same
+core code as ``ooi-seg segment``) every ``every_n_keyframes`` new keyframes and on the
+``~/segment`` service (std_srvs/Trigger), driven from a worker thread; the run itself
 goes to a worker *process* (``segment_worker``, ``seg.worker``) where the process may use two
 cores, so that it neither waits for the GIL behind the executor and the nodes beside it nor
 holds it from them. Publishes ``ooi/points``

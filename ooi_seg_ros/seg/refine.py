@@ -74,6 +74,12 @@ class RefineConfig:
     # the object's, which the per-pixel test calls object (a 1-2 px halo all round); the cut
     # leaves that halo out. Not on lossless images: there the added ring pixels are mostly
     # true outline, and the cut costs recall (session 21, BENCHMARKS)
+    blend_detect: bool = True  # hull_graph "compressed" also acts on a capture whose colour
+    # is blurred wider than its brightness (``capture_chroma_sharpness`` under ``blend_max``):
+    # JPEG or video frames a driver decoded and publishes as raw ``Image``s, or saved as PNG
+    # -- the same blended outline colours, with no flag to say so (``View.compressed``)
+    blend_max: float = 0.9  # blend_detect: chroma this much smoother than luma counts as
+    # subsampled (full-resolution colour ~1: its edges are the luma's; 4:2:0 JPEG 0.6-0.8)
     hull_graph_thin_px: float = 3.0  # hull_graph: where no mask pixel within this many pixels
     # lies this deep inside the mask (a thin part, a part the mask missed) the per-pixel test
     # decides alone: the cut's smoothness removes thin parts, which the additions bring back
@@ -491,6 +497,13 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
     out = dict(masks)
     added = 0
     graph_views = 0
+    blended = False
+    if (cfg.hull_graph == "compressed" and cfg.blend_detect
+            and not all(v.compressed for v in views if v.key in models)):
+        sharp = capture_chroma_sharpness([v for v in views if v.key in models])
+        blended = sharp is not None and sharp < float(cfg.blend_max)
+        params["chroma_sharpness"] = sharp
+    params["blended"] = blended
     hull_xyz = grid[keep]
     index = {v.key: i for i, v in enumerate(views)}
     for v in views:
@@ -507,7 +520,7 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
         col = v.get_image()[cand][:, ::-1].astype(float)  # BGR, as GrabCut saw it
         obj = gmm_log_likelihood(fgd, col) > gmm_log_likelihood(bgd, col)
         if obj.any() and (cfg.hull_graph == "on"
-                          or (cfg.hull_graph == "compressed" and v.compressed)):
+                          or (cfg.hull_graph == "compressed" and (v.compressed or blended))):
             obj &= _graph_verdict(v.get_image(), m, cand, bgd, fgd,
                                   float(cfg.hull_graph_thin_px))
             graph_views += 1
@@ -531,6 +544,51 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
     params["added_px"] = added
     params["graph_views"] = graph_views
     return out, params
+
+
+def chroma_sharpness(rgb: np.ndarray) -> Optional[float]:
+    """How sharp an image's colour is next to its brightness: the ratio of high- to
+    low-frequency gradient energy (mean |2nd difference| / mean |1st difference|, both axes)
+    of the chroma channels (Cb, Cr; averaged) over the same ratio of the luma channel.
+
+    Full-resolution colour changes where brightness changes and measures ~1 (the simulator's
+    renders >= 1.04 on all 3,000 lossless views); colour stored at half resolution (JPEG's and
+    video's 4:2:0 chroma, upsampled on decoding) is smoother than the luma: 0.6-0.8 on the
+    same renders through JPEG. It measures colour blurred wider than brightness whatever the
+    cause: the bonsai's JPEG photos give a median of 0.95 at 800x533 (made by downsizing
+    larger photos) and 0.71 resized to half. None when the image is too small or has (almost)
+    no colour gradients to measure (a grey image).
+    """
+    if rgb is None or rgb.ndim != 3 or rgb.shape[2] < 3 or min(rgb.shape[:2]) < 16:
+        return None
+    x = rgb[..., :3].astype(np.float32)
+    y = x @ np.array([0.299, 0.587, 0.114], np.float32)
+    cb = x @ np.array([-0.168736, -0.331264, 0.5], np.float32)
+    cr = x @ np.array([0.5, -0.418688, -0.081312], np.float32)
+
+    def ratio(c: np.ndarray) -> Optional[float]:
+        d1 = np.abs(np.diff(c, axis=0)).mean() + np.abs(np.diff(c, axis=1)).mean()
+        d2 = np.abs(np.diff(c, 2, axis=0)).mean() + np.abs(np.diff(c, 2, axis=1)).mean()
+        return float(d2 / d1) if d1 > 0.05 else None  # under 1/20 grey level per pixel: flat
+
+    ry = ratio(y)
+    rc = [r for r in (ratio(cb), ratio(cr)) if r is not None]
+    if ry is None or not rc:
+        return None
+    return float(np.mean(rc) / ry)
+
+
+def capture_chroma_sharpness(views: list[View], max_views: int = 15) -> Optional[float]:
+    """Median ``chroma_sharpness`` over up to ``max_views`` views spread over ``views`` (one
+    capture comes through one camera and one codec; a single view can mislead: 19 of 2,640
+    JPEG q90 simulator views measure >= 0.9, while per capture the medians are 0.69-0.81 on
+    JPEG and 1.10-1.20 lossless). None when no view measures."""
+    if not views:
+        return None
+    idx = np.unique(np.linspace(0, len(views) - 1, min(len(views), max_views)).astype(int))
+    vals = [chroma_sharpness(views[i].get_image()) for i in idx]
+    vals = [x for x in vals if x is not None]
+    return float(np.median(vals)) if vals else None
 
 
 def _graph_verdict(rgb: np.ndarray, mask: np.ndarray, cand: np.ndarray, bgd: np.ndarray,
