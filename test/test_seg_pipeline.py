@@ -206,3 +206,30 @@ def test_keep_discs_only_adds_pixels_that_join_the_mask(aircraft):
             part = lab == k
             assert (part & b).any() or part.sum() >= 9
     assert added > 0
+
+
+def test_decoded_jpeg_handed_over_as_raw_images_gets_the_graph_cut(aircraft):
+    """The whole pipeline on the capture as rendered (no cut), and on the same images
+    through JPEG q90 but unflagged, as a driver that decodes and republishes them delivers
+    them: the refinement measures the chroma, calls the capture blended and runs the hull
+    additions' graph cut, as for flagged JPEG (the same masks)."""
+    import dataclasses
+    import io
+    from PIL import Image
+    sim, cloud = aircraft
+
+    def jpeg(img):
+        buf = io.BytesIO()
+        Image.fromarray(img).save(buf, "JPEG", quality=90)
+        return np.asarray(Image.open(buf).convert("RGB"))
+    raw = segment(sim.capture, cloud, make_config("ours"))
+    hull = raw.params["refine"]["hull_add"]
+    assert not hull["blended"] and hull["chroma_sharpness"] > 1.0 and hull["graph_views"] == 0
+    views = [dataclasses.replace(v, image=jpeg(v.get_image()), loader=None)
+             for v in sim.capture.views]
+    unflagged = segment(Capture(views), cloud, make_config("ours"))
+    hu = unflagged.params["refine"]["hull_add"]
+    assert hu["blended"] and hu["chroma_sharpness"] < 0.9 and hu["graph_views"] > 0
+    flagged = segment(Capture([dataclasses.replace(v, compressed=True) for v in views]), cloud,
+                      make_config("ours"))
+    assert all(np.array_equal(flagged.masks[k], unflagged.masks[k]) for k in flagged.masks)
