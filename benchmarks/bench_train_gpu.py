@@ -85,6 +85,8 @@ def run(data: Path, budget: float, cap_n: int, cpu_steps: int, out: Path | None,
         scenes: list[str] | None = None, iterations: int = 0,
         modes: tuple[str, ...] = ("object-only", "full-image")) -> None:
     rows = []
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)  # the render and the JSON go there
     print(f"{'scene':>9} {'backend':>7} {'mode':>11} {'steps':>6} {'it/s':>7} {'N':>6} "
           f"{'PSNR(mask)':>10} {'SSIM(mask)':>10}", flush=True)
     for path in sorted(data.glob("*.npz")):
