@@ -74,6 +74,8 @@ VARIANTS = {
     "ours-pv-loose": ("ours", {"refine": {"plane_check": {"pixel_strict": False}}}),
     # session 24: no chroma-subsampling measure (unflagged JPEG pixels then get no graph cut)
     "ours-no-blend": ("ours", {"refine": {"blend_detect": False}}),
+    # GrabCut at the image's own size (the default before session 25)
+    "ours-up1": ("ours", {"refine": {"upsample": 1}}),
     # session 24: splat shapes that hug thin parts; radii of stray points (both trade recall)
     "ours-ellipse": ("ours", {"masks": {"splat_shape": "ellipse"}}),
     "ours-local-radii": ("ours", {"masks": {"splat_local": True}}),

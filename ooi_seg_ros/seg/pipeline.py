@@ -4,13 +4,14 @@
 default) adds the signals an orbit gives for free: the camera-framing region of interest, a
 camera-aware support-plane rule, the DBSCAN cluster the cameras look at, masks splatted from
 the OOI points (no Poisson balloon), and a per-view GrabCut refinement seeded by the
-projections of the OOI points, in which every pixel that shows the support plane, a
-background wall (plane-induced photo-consistency with nearby views, ``photo.py``) or the
-background beyond the object (the same test at the depth of the nearest background SfM point
-behind it) is sure background -- next to the object also when only a patch shifted off the
-pixel matches and the pixel's own colour does -- while pixels whose colour the object's depth
-explains and the plane's does not stay object (over the OOI points' discs, also where they
-reach past the splatted silhouette: ``plane_check.keep_discs``); the refined outline then
+projections of the OOI points (on a crop enlarged twice when the image is small, so that thin
+parts survive the graph cut: ``refine.upsample``), in which every pixel that shows the support
+plane, a background wall (plane-induced photo-consistency with nearby views, ``photo.py``) or
+the background beyond the object (the same test at the depth of the nearest background SfM
+point behind it) is sure background -- next to the object also when only a patch shifted off
+the pixel matches and the pixel's own colour does -- while pixels whose colour the object's
+depth explains and the plane's does not stay object (over the OOI points' discs, also where
+they reach past the splatted silhouette: ``plane_check.keep_discs``); the refined outline then
 takes the ring pixels whose colour is nearer the object's than the background's
 (``refine.edge_matte``).
 Before that, each view's mask takes the pixels whose rays meet the visual hull of all views'
@@ -94,6 +95,7 @@ def preset(method: str) -> dict:
                           "hull_carve": False},
                 "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
                            "edge_alpha": 0.4, "max_side": 400, "hull_add": True,
+                           "upsample": 2,
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,

@@ -7,6 +7,15 @@ the points the earlier stages removed (floor, background) are background pixels.
 plus the silhouette as "probably object" and a band around it as "probably background",
 initialise GrabCut (colour models + graph cut) on a crop around the object. A refinement that
 changes the area beyond ``max_area_change`` is rejected and the silhouette kept (counted).
+
+``upsample`` (2 in ``ours``): a crop smaller than ``max_side`` is cut on a grid enlarged that
+many times (labels nearest, image bicubic) and each pixel is object when at least half its
+sub-pixels are -- the truth's own convention for an outline pixel. The graph cut's smoothness
+term charges each boundary edge; enlarged k times, a part's data terms grow with its area
+(k^2) and its boundary edges only k times, so a part 1-4 px wide (a tube, a leaf) is cut
+away for the length of its boundary less often, and the outline is placed to a sub-pixel
+(measured, BENCHMARKS session 25: thin scenes gain recall and precision, solid ones stay
+within +-0.005 IoU; the refinement costs about twice the time).
 """
 
 from __future__ import annotations
@@ -43,6 +52,9 @@ class RefineConfig:
     voronoi: bool = False  # silhouette pixels nearer a background than an object observation
     # start as probably-background instead of probably-object
     opening: int = 1  # iterations of the binary opening that removes specks from the result
+    upsample: int = 1  # GrabCut on the crop enlarged this many times (labels nearest, image
+    # bicubic) when the crop is below max_side, its result averaged back (>= half the sub-
+    # pixels object): a thin part 2 px wide is 4 px wide to the graph cut's smoothness term
     edge_window: int = 0  # outline matting: a pixel just outside the mask joins it when its
     # colour is nearer the mean of the object pixels than of the background pixels within this
     # window (px) around it; 0 = off (see ``edge_matte``)
@@ -213,9 +225,21 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
             continue
         bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
         cv2.setRNGSeed(int(cfg.seed) * 100003 + j)
+        up = int(cfg.upsample) if scale >= 1.0 and max(crop.shape) < cfg.max_side else 1
         try:
-            cv2.grabCut(np.ascontiguousarray(img[..., ::-1]), gc, None, bgd, fgd,
-                        int(cfg.iterations), cv2.GC_INIT_WITH_MASK)
+            if up > 1:
+                hh, ww = gc.shape
+                gcu = cv2.resize(gc, (ww * up, hh * up), interpolation=cv2.INTER_NEAREST)
+                imu = cv2.resize(np.ascontiguousarray(img[..., ::-1]), (ww * up, hh * up),
+                                 interpolation=cv2.INTER_CUBIC)
+                cv2.grabCut(imu, gcu, None, bgd, fgd, int(cfg.iterations),
+                            cv2.GC_INIT_WITH_MASK)
+                fgu = (gcu == cv2.GC_FGD) | (gcu == cv2.GC_PR_FGD)
+                share = fgu.reshape(hh, up, ww, up).mean(axis=(1, 3))
+                gc = np.where(share >= 0.5, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+            else:
+                cv2.grabCut(np.ascontiguousarray(img[..., ::-1]), gc, None, bgd, fgd,
+                            int(cfg.iterations), cv2.GC_INIT_WITH_MASK)
         except cv2.error:
             rejected += 1
             out[v.key] = fallback
@@ -668,9 +692,12 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     if cfg.plane_check.behind_window < 0:
         raise ValueError(f"refine.plane_check.behind_window={cfg.plane_check.behind_window}; "
                          f"use a patch side in px (0 = plane_check.window)")
+    if int(cfg.upsample) < 1:
+        raise ValueError(f"refine.upsample={cfg.upsample}; use 1 (GrabCut at the image's size) "
+                         f"or more")
     fg_obs = _obs_by_view(ooi, views)
     bg_obs = _obs_by_view(background, views)
-    params: dict = {"fg_seeds": cfg.fg_seeds}
+    params: dict = {"fg_seeds": cfg.fg_seeds, "upsample": int(cfg.upsample)}
     floor = None
     if cfg.plane_check.enabled and plane is not None and target is not None:
         floor = PlaneConsistency(views, np.asarray(plane, float), np.asarray(target, float),
