@@ -257,6 +257,7 @@ class _OoiCloud:
 
 OBS_WAIT_S = 2.0  # s a run waits for the observations published with its SfM cloud
 MAX_LOSSY_MARKS = 10_000  # JPEG keyframe marks kept (the newest stamps)
+LIVE_REFINE_UPSAMPLE = 1  # refine.upsample of the live node (see __init__)
 LIVE_REFINE_MAX_SIDE = 256  # px, without the worker process; see SegmentationNode.__init__
 
 
@@ -284,6 +285,12 @@ class SegmentationNode(Node):
             # against 0.876 at 256; session 7). Parameter seg.refine.max_side overrides.
             self.seg_cfg.refine.max_side = min(self.seg_cfg.refine.max_side,
                                                LIVE_REFINE_MAX_SIDE)
+        # live: GrabCut on the crop as it is, not enlarged (the preset's refine.upsample 2). In
+        # the 30 Hz 1280x720 load bench (working size 640x360) enlarged crops doubled the full
+        # runs (29 -> 73 s) and the final masks' latency (median 51 -> 97 s), and at 640x360
+        # they gain nothing (stool 0.926 -> 0.924; BENCHMARKS session 25). Parameter
+        # seg.refine.upsample overrides.
+        self.seg_cfg.refine.upsample = LIVE_REFINE_UPSAMPLE
         ConfigParams(self, self.seg_cfg, prefix="seg.")
         self.diag = Diagnostics(self)
         self.throttle = Throttle(self)
