@@ -112,8 +112,49 @@ def naive_mask(xyz: np.ndarray, radii: np.ndarray, view: View) -> np.ndarray:
     return hit.reshape(c.height, c.width)
 
 
+def primitives(repeats: int = 200) -> None:
+    """The refinement's two hottest numpy primitives next to the form they replaced (session
+    26), same inputs, same process: the rigid transform of a crop's points (``to_camera``
+    vs ``[N, 3] @ R.T + t``) and the plane check's box means (``cv2.boxFilter`` vs
+    ``ndimage.uniform_filter``, float32)."""
+    import cv2
+    from scipy import ndimage
+
+    from ooi_seg_ros.core.geometry import to_camera
+    rng = np.random.default_rng(0)
+    pose = make_views(1)[0].pose
+    r_cw, t_cw = pose.world_to_cam()
+    print(f"\n{'primitive':<34} {'before ms':>10} {'now ms':>8} {'ratio':>6} {'max |diff|':>11}")
+    for n in (5000, 50000, 1000000):
+        x = rng.random((n, 3))
+        before = (lambda: x @ r_cw.T + t_cw)
+        _row(f"camera frame, N={n}", before, lambda: to_camera(x, pose),
+             repeats if n < 500000 else 10, lambda: np.stack(to_camera(x, pose), 1))
+    for h, w, win in ((240, 320, 5), (400, 400, 5), (240, 320, 3)):
+        a = (rng.random((h, w)) * 255).astype(np.float32)
+        _row(f"box mean {w}x{h}, window {win}",
+             lambda: ndimage.uniform_filter(a, win, mode="nearest"),
+             lambda: cv2.boxFilter(a, -1, (win, win), borderType=cv2.BORDER_REPLICATE),
+             repeats)
+
+
+def _row(name: str, before, now, repeats: int, now_array=None) -> None:
+    times = []
+    for fn in (before, now, before, now):  # interleaved: load changes hit both
+        fn()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        times.append((time.perf_counter() - t0) / repeats * 1e3)
+    tb, tn = min(times[0], times[2]), min(times[1], times[3])
+    diff = float(np.abs(np.asarray(before()) - np.asarray((now_array or now)())).max())
+    print(f"{name:<34} {tb:>10.3f} {tn:>8.3f} {tb / tn:>5.1f}x {diff:>11.2e}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--primitives", action="store_true",
+                    help="only time the refinement's numpy primitives against their old form")
     ap.add_argument("--sizes", nargs="+", type=int, default=[10000, 100000, 1000000])
     ap.add_argument("--sklearn-sizes", nargs="+", type=int, default=[5000, 10000, 20000])
     ap.add_argument("--mask-views", type=int, default=300)
@@ -122,6 +163,9 @@ def main() -> None:
     ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2",
                     help="bench_seg_quality.py's SfM cache")
     args = ap.parse_args()
+    if args.primitives:
+        primitives()
+        return
     noise_cfg = make_config("ours").noise
     print(load_note())
     views = make_views(60)

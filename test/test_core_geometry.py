@@ -98,3 +98,20 @@ def test_cloud_subset_keeps_observations():
     np.testing.assert_array_equal(s.obs_ptr, [0, 1, 1, 4])
     np.testing.assert_array_equal(s.obs_view, [2, 0, 1, 2])
     np.testing.assert_array_equal(s.observations(2)[1], oxy[3:6])
+
+
+@pytest.mark.parametrize("n", [0, 5, 70_001])  # 70,001 spans three of to_camera's blocks
+def test_to_camera_and_project_match_the_matrix_form(n):
+    rng = np.random.default_rng(1)
+    pose = g.look_at(np.array([3.0, -2.0, 1.5]), np.zeros(3), np.array([0, 0, 1.0]))
+    x = rng.normal(size=(n, 3))
+    r_cw, t_cw = pose.world_to_cam()
+    want = x @ r_cw.T + t_cw
+    np.testing.assert_allclose(np.stack(g.to_camera(x, pose), 1), want, atol=1e-12)
+    cam = CameraIntrinsics(320, 240, 300.0, 300.0, 160.0, 120.0)
+    uv, z = g.project(x, cam, pose)
+    assert uv.shape == (n, 2) and z.shape == (n,)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        np.testing.assert_allclose(uv[:, 0], 300.0 * want[:, 0] / want[:, 2] + 160.0)
+    bad = np.array([[np.nan, 1.0], [1.0, 2.0], [np.inf, np.nan], [3.0, -np.inf]])
+    assert g.finite_rows(bad).tolist() == [False, True, False, False]

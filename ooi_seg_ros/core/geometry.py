@@ -115,16 +115,40 @@ def pose_from_colmap(qvec_wxyz: np.ndarray, tvec: np.ndarray) -> Pose:
     return Pose(R_cw.T, -R_cw.T @ np.asarray(tvec, float))
 
 
+_BLOCK = 32768  # rows per block of ``to_camera``
+
+
+def to_camera(points: np.ndarray, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-frame coordinates (x, y, z), each [N], of world points [N, 3].
+
+    Written out per column: NumPy's ``[N, 3] @ [3, 3]`` runs 3-4x slower than these
+    multiply-adds for the crop-sized point sets the refinement projects many times over
+    (``benchmarks/bench_seg_speed.py --primitives``)."""
+    R_cw, t_cw = pose.world_to_cam()
+    p = np.asarray(points, float)
+    out = np.empty((3, len(p)))
+    for s in range(0, len(p), _BLOCK):  # blocks that stay in cache (a 1M-voxel grid)
+        x, y, z = p[s:s + _BLOCK, 0], p[s:s + _BLOCK, 1], p[s:s + _BLOCK, 2]
+        for k in range(3):
+            out[k, s:s + _BLOCK] = R_cw[k, 0] * x + R_cw[k, 1] * y + R_cw[k, 2] * z + t_cw[k]
+    return out[0], out[1], out[2]
+
+
+def finite_rows(a: np.ndarray) -> np.ndarray:
+    """[N] bool: rows of an [N, 2] array (pixel coordinates) with both entries finite
+    (``np.isfinite(a).all(1)`` reduces along the short axis several times slower)."""
+    return np.isfinite(a[:, 0]) & np.isfinite(a[:, 1])
+
+
 def project(points: np.ndarray, cam: CameraIntrinsics,
             pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates [N,2] and depths [N] of world points in an undistorted pinhole view."""
-    R_cw, t_cw = pose.world_to_cam()
-    pc = np.asarray(points, float) @ R_cw.T + t_cw
-    z = pc[:, 2]
+    xc, yc, z = to_camera(points, pose)
+    uv = np.empty((len(z), 2))
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = cam.fx * pc[:, 0] / z + cam.cx
-        v = cam.fy * pc[:, 1] / z + cam.cy
-    return np.stack([u, v], axis=1), z
+        uv[:, 0] = cam.fx * xc / z + cam.cx
+        uv[:, 1] = cam.fy * yc / z + cam.cy
+    return uv, z
 
 
 def pixel_rays(cam: CameraIntrinsics, pose: Pose,

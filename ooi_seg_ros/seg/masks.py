@@ -20,7 +20,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ..core.geometry import project
+from ..core.geometry import finite_rows, project, to_camera
 from ..core.types import CameraIntrinsics, Pose, TriMesh, View
 
 
@@ -80,11 +80,9 @@ def project_distorted(xyz: np.ndarray, cam: CameraIntrinsics, pose: Pose
     """Pixel coordinates [N,2] (with the camera's plumb_bob distortion) and depths [N]."""
     if not cam.has_distortion:
         return project(xyz, cam, pose)
-    R, t = pose.world_to_cam()
-    pc = xyz @ R.T + t
-    z = pc[:, 2]
+    xc, yc, z = to_camera(xyz, pose)
     with np.errstate(divide="ignore", invalid="ignore"):
-        x, y = pc[:, 0] / z, pc[:, 1] / z
+        x, y = xc / z, yc / z
     d = np.zeros(5)
     d[:min(5, len(cam.dist))] = cam.dist[:5]
     k1, k2, p1, p2, k3 = d
@@ -202,7 +200,7 @@ def alpha_masks(xyz: np.ndarray, radii: np.ndarray, views: list[View], cfg: Mask
     for v in views:
         c = v.camera
         uv, z = project_distorted(xyz, c, v.pose)
-        ok = (z > 1e-9) & np.isfinite(uv).all(1)
+        ok = (z > 1e-9) & finite_rows(uv)
         uv_ok, rpx = uv[ok], radii[ok] * c.fx / z[ok]
         m = _splat(uv_ok, np.clip(rpx, 0.5, cfg.max_splat_px), c.height, c.width)
         if len(uv_ok) >= 3:
@@ -358,7 +356,7 @@ def point_masks(xyz: np.ndarray, radii: np.ndarray, views: list[View], cfg: Mask
     for v in views:
         c = v.camera
         uv, z = project_distorted(xyz, c, v.pose)
-        ok = (z > 1e-9) & np.isfinite(uv).all(1)
+        ok = (z > 1e-9) & finite_rows(uv)
         if cov is None:
             rpx = np.clip(radii[ok] * c.fx / z[ok], 0.5, cfg.max_splat_px)
             m = _splat(uv[ok], rpx, c.height, c.width)

@@ -52,6 +52,7 @@ from typing import Optional
 import numpy as np
 from scipy import ndimage
 
+from ..core.geometry import finite_rows
 from ..core.types import View
 from .masks import project_distorted, undistorted_dirs
 
@@ -248,7 +249,7 @@ class PlaneConsistency:
         import cv2
         cj = self.views[j].camera
         uv, z = project_distorted(X, cj, self.views[j].pose)
-        ok = hit & (z > 0) & np.isfinite(uv).all(1)
+        ok = hit & (z > 0) & finite_rows(uv)
         ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cj.width - 1)
         ok &= (uv[:, 1] >= 0) & (uv[:, 1] <= cj.height - 1)
         mx = np.where(ok, uv[:, 0], -1.0).astype(np.float32).reshape(shape)
@@ -271,7 +272,7 @@ class PlaneConsistency:
         if len(zo) == 0 or len(self.behind_xyz) == 0:
             return np.zeros((n, 3)), np.zeros(n, bool)
         uv, z = project_distorted(self.behind_xyz, v.camera, v.pose)
-        far = (z > np.quantile(zo, 0.98)) & np.isfinite(uv).all(1)
+        far = (z > np.quantile(zo, 0.98)) & finite_rows(uv)
         gx = np.rint((uv[far, 0] - x0 + 0.5) * w / (x1 - x0) - 0.5).astype(int)
         gy = np.rint((uv[far, 1] - y0 + 0.5) * h / (y1 - y0) - 0.5).astype(int)
         zf = z[far]
@@ -321,7 +322,7 @@ class PlaneConsistency:
         sx, sy = w / (x1 - x0), h / (y1 - y0)
         uv, z = project_distorted(self.ooi_xyz, c, v.pose)
         r = self.radii()
-        ok = (z > 1e-9) & np.isfinite(uv).all(1)
+        ok = (z > 1e-9) & finite_rows(uv)
         gu = (uv[ok, 0] - x0 + 0.5) * sx - 0.5
         gv = (uv[ok, 1] - y0 + 0.5) * sy - 0.5
         rpx = r[ok] * c.fx / z[ok] * sx + 1.0  # the splat's closing reaches ~1 px further
@@ -349,12 +350,12 @@ class PlaneConsistency:
         within the pair's noise and better than the warp at the object's depth (where an OOI
         disc covers it): an object edge warped through the plane is displaced by parallax.
         """
+        import cv2
         t0 = time.perf_counter()
         y0, y1, x0, x1 = box
         cfg = self.cfg
         a = self._image(i)[y0:y1, x0:x1]
         if shape is not None and tuple(shape) != a.shape[:2]:
-            import cv2
             a = cv2.resize(a, (int(shape[1]), int(shape[0])), interpolation=cv2.INTER_AREA)
         else:
             shape = None
@@ -378,7 +379,9 @@ class PlaneConsistency:
             win = max(1, int(win))
 
             def box_mean(x: np.ndarray) -> np.ndarray:
-                return ndimage.uniform_filter(x, win, mode="nearest")
+                # ndimage.uniform_filter(x, win, mode="nearest") within float32 rounding,
+                # 4x faster (the plane check's NCC takes ~10 of these per neighbour)
+                return cv2.boxFilter(x, -1, (win, win), borderType=cv2.BORDER_REPLICATE)
 
             ma = box_mean(ga)
             va = np.maximum(box_mean(ga * ga) - ma * ma, 0.0)

@@ -26,6 +26,7 @@ from typing import Optional
 import numpy as np
 from scipy import ndimage
 
+from ..core.geometry import finite_rows
 from ..core.types import SfmCloud, View
 from .masks import MaskConfig, fill_small_holes, point_masks, project_distorted
 from .photo import PlaneCheckConfig, PlaneConsistency
@@ -127,7 +128,7 @@ def _in_frame(proj: tuple[np.ndarray, np.ndarray], v: View) -> np.ndarray:
     """Projected pixels [k,2] in front of the camera and inside its image."""
     uv, z = proj
     c = v.camera
-    ok = (z > 1e-9) & np.isfinite(uv).all(1)
+    ok = (z > 1e-9) & finite_rows(uv)
     ok &= (uv[:, 0] > -0.5) & (uv[:, 0] < c.width - 0.5)
     ok &= (uv[:, 1] > -0.5) & (uv[:, 1] < c.height - 0.5)
     return uv[ok].astype(np.float32)
