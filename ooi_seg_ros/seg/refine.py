@@ -371,6 +371,12 @@ def edge_matte(img: np.ndarray, mask: np.ndarray, window: int, alpha: float = 0.
     """
     if window <= 1 or not mask.any():
         return mask
+    import cv2
+
+    def box_mean(x: np.ndarray) -> np.ndarray:  # ndimage.uniform_filter(x, window,
+        # mode="constant") within float32 rounding, several times faster
+        return cv2.boxFilter(x, -1, (window, window), borderType=cv2.BORDER_CONSTANT)
+
     st = np.ones((3, 3), bool)
     inner = ndimage.binary_erosion(mask, st, border_value=1)
     grown = ndimage.binary_dilation(mask, st)
@@ -378,8 +384,8 @@ def edge_matte(img: np.ndarray, mask: np.ndarray, window: int, alpha: float = 0.
     outer = ~grown
     im = img.astype(np.float32)
     fi, fo = inner.astype(np.float32), outer.astype(np.float32)
-    nf = ndimage.uniform_filter(fi, window, mode="constant")
-    nb = ndimage.uniform_filter(fo, window, mode="constant")
+    nf = box_mean(fi)
+    nb = box_mean(fo)
     ok = ring & (nf > 1e-6) & (nb > 1e-6)
     if not ok.any():
         return mask
@@ -387,9 +393,9 @@ def edge_matte(img: np.ndarray, mask: np.ndarray, window: int, alpha: float = 0.
     dG = np.zeros(mask.shape, np.float32)
     dFG = np.zeros(mask.shape, np.float32)
     for c in range(im.shape[2]):
-        F = ndimage.uniform_filter(im[..., c] * fi, window, mode="constant")
+        F = box_mean(im[..., c] * fi)
         F /= np.maximum(nf, 1e-6)
-        G = ndimage.uniform_filter(im[..., c] * fo, window, mode="constant")
+        G = box_mean(im[..., c] * fo)
         G /= np.maximum(nb, 1e-6)
         dF += (im[..., c] - F) ** 2
         dG += (im[..., c] - G) ** 2
