@@ -324,14 +324,15 @@ def time_sfm(capture, factors: list[int], n: int = 20) -> None:
               flush=True)
 
 
-def replay_runs(n_views: int, every: int, seg_params: tuple) -> None:
+def replay_runs(n_views: int, every: int, seg_params: tuple, all_too: bool = True) -> None:
     """Offline and deterministic: the segmentation node's full runs on the demo bag's first
     ``n_views`` keyframes, one run every ``every`` keyframes on the SfM cloud of that moment,
     called synchronously (no load, no timing noise), with incremental final masks and with
     every keyframe re-masked, side by side: masks made per run, the run's CPU seconds (this
     process and the worker process the node hands full runs to), and the mean IoU against the
     bag's ground truth of the final mask each keyframe holds after each run (what a consumer
-    of ``ooi/mask`` has); then the runs' wall seconds."""
+    of ``ooi/mask`` has); then the runs' wall seconds. ``all_too`` False: the incremental
+    runs only (the other column is left empty)."""
     import uuid
     from pathlib import Path
 
@@ -362,7 +363,7 @@ def replay_runs(n_views: int, every: int, seg_params: tuple) -> None:
     # a warm-up run first: the first segment() call of a process makes slightly different
     # masks than the later ones (some one-time state in the segmentation core), which would
     # favour whichever mode runs second
-    for incremental in ("warm-up", True, False):
+    for incremental in ("warm-up", True, False) if all_too else ("warm-up", True):
         ctx = Context()
         rclpy.init(context=ctx)
         node = SegmentationNode(context=ctx, namespace="/replay_" + uuid.uuid4().hex[:8],
@@ -406,6 +407,8 @@ def replay_runs(n_views: int, every: int, seg_params: tuple) -> None:
           "worker processes) / mean final IoU | every keyframe: masks made / run CPU s / mean "
           "final IoU |")
     print("|---|---|---|")
+    if not all_too:  # an empty column
+        rows[False] = [(r[0], 0, 0.0, float("nan"), 0.0) for r in rows[True]]
     for a, b in zip(rows[True], rows[False]):
         print(f"| {a[0]} | {a[1]} / {a[2]} / {a[3]:.3f} | {b[1]} / {b[2]} / {b[3]:.3f} |")
     ta, tb = sum(r[2] for r in rows[True]), sum(r[2] for r in rows[False])
@@ -490,6 +493,8 @@ def main() -> None:
     ap.add_argument("--replay-demo", type=int, default=0, metavar="EVERY",
                     help="only replay the node's full runs offline on the demo bag, one every "
                          "EVERY keyframes, incremental vs all masks (deterministic)")
+    ap.add_argument("--replay-incremental-only", action="store_true",
+                    help="with --replay-demo: skip the every-keyframe runs")
     ap.add_argument("--all-masks", action="store_true",
                     help="every full run re-masks every keyframe (incremental_final false); "
                          "with --seg-param every_n_keyframes=10 the behaviour before "
@@ -502,7 +507,7 @@ def main() -> None:
     if args.all_masks:
         seg_params = (Parameter("incremental_final", value=False),) + seg_params
     if args.replay_demo:
-        replay_runs(args.unique, args.replay_demo, seg_params)
+        replay_runs(args.unique, args.replay_demo, seg_params, not args.replay_incremental_only)
         return
     if not args.default_malloc:
         limit_heap_growth()  # as the nodes' main() does (run_node)

@@ -67,6 +67,22 @@ def test_dead_worker_fails_pending_futures():
     w.close(timeout=1.0)
 
 
+def test_worker_runs_below_the_callers_priority():
+    import os
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    w = SegmentationWorker(nice=5)
+    try:
+        assert w.nice == 5
+        assert os.getpriority(os.PRIO_PROCESS, w.pid) == min(19, base + 5)
+    finally:
+        w.close(timeout=5.0)
+    w = SegmentationWorker()
+    try:
+        assert w.nice == 0 and os.getpriority(os.PRIO_PROCESS, w.pid) == base
+    finally:
+        w.close(timeout=5.0)
+
+
 def test_context_masks_replace_refining_the_other_views(case):
     """With hull_add on, a view subset normally refines every view (the hull needs all
     masks); given the other views' masks it refines only the subset, and with the full

@@ -73,10 +73,11 @@ class WorkerDied(RuntimeError):
 class SubprocessWorker:
     """A subprocess running ``handler`` (``"module:function"``) on jobs in submission order
     (``submit`` returns a ``Future``). Writing jobs and reading results run on two small I/O
-    threads, so neither ``submit`` nor the worker waits for the other."""
+    threads, so neither ``submit`` nor the worker waits for the other. ``nice`` > 0 lowers the
+    worker's CPU priority by that much (``self.nice`` says whether it took)."""
 
     def __init__(self, handler: str, init: Any = None, name: str = "worker",
-                 env: Optional[dict] = None):
+                 env: Optional[dict] = None, nice: int = 0):
         import ooi_seg_ros
         root = str(Path(ooi_seg_ros.__file__).resolve().parents[1])
         penv = dict(os.environ)
@@ -87,6 +88,16 @@ class SubprocessWorker:
         self.proc = subprocess.Popen(
             [sys.executable, "-c", f"from {__name__} import _serve; _serve()"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=penv)
+        self.nice = 0
+        if nice > 0:
+            # set from here (no preexec_fn: unsafe in a process with threads, such as a node);
+            # the worker's first job waits in its stdin, so nothing runs at the old priority
+            try:
+                cur = os.getpriority(os.PRIO_PROCESS, self.proc.pid)
+                os.setpriority(os.PRIO_PROCESS, self.proc.pid, min(19, cur + int(nice)))
+                self.nice = int(nice)
+            except (OSError, AttributeError):  # not permitted / not POSIX: run at our priority
+                pass
         self._lock = threading.Lock()
         self._futures: dict[int, Future] = {}
         self._next_id = 0

@@ -174,6 +174,17 @@ class SegNodeConfig:
                                      "shares the GIL with the callbacks and any node beside "
                                      "it (measured ~10x slower per mask under camera load); "
                                      "the worker keeps its own copy of the keyframe images"})
+    segment_worker_nice: int = dataclasses.field(
+        default=10, metadata={"doc": "the worker process runs this much below the node's CPU "
+                                     "priority (0-19; 10, the usual level of a background "
+                                     "job, is the only value measured): where busy processes "
+                                     "outnumber the cores, the camera stream, the "
+                                     "subscriptions and the SfM node come first and the "
+                                     "refinement takes what is left. 30 Hz 1280x720 load "
+                                     "bench, 2 cores, two runs each: frames received 79-82% "
+                                     "-> 94%, keyframes dropped for SfM backlog 13-17 -> 10, "
+                                     "final masks 0.922-0.925 -> 0.934-0.939 IoU, their "
+                                     "latency unchanged (median 47-56 s vs 51-53 s)"})
     change_check_side: int = dataclasses.field(
         default=96, metadata={"doc": "long side in pixels of the coarse silhouettes compared "
                                      "for final_refresh_change"})
@@ -215,6 +226,8 @@ SPECS = {
                                 read_only=True),
     "segment_worker": ParamSpec("full runs in a worker process (-1 = auto, 0 = none)", -1, 1,
                                 read_only=True),
+    "segment_worker_nice": ParamSpec("CPU priority below the node's of the worker process",
+                                     0, 19, read_only=True),
     "frame_id": ParamSpec("world frame of outputs", read_only=True),
     "method": ParamSpec("segmentation preset", choices=("ours", "paper"), read_only=True),
 }
@@ -627,7 +640,8 @@ class SegmentationNode(Node):
             if self._worker is not None:
                 self._worker.close(timeout=1.0)
             try:
-                self._worker = SegmentationWorker()
+                self._worker = SegmentationWorker(nice=int(self.cfg.segment_worker_nice))
+                self.diag.set("segment_worker_nice", self._worker.nice)
             except OSError as exc:  # no interpreter to start, no processes left
                 self._worker_failed(exc)
                 return None

@@ -70,8 +70,9 @@ def _segment_job(state: dict, job: tuple):
 class SegmentationWorker:
     """``segment`` / ``point_stages`` of a node's keyframes in a worker process (see module)."""
 
-    def __init__(self) -> None:
-        self._w = SubprocessWorker(f"{__name__}:_segment_job", None, name="segmentation")
+    def __init__(self, nice: int = 0) -> None:
+        self._w = SubprocessWorker(f"{__name__}:_segment_job", None, name="segmentation",
+                                   nice=nice)
         self._sent: dict[int, np.ndarray] = {}  # stamp -> the image object the worker holds
 
     @property
@@ -81,6 +82,11 @@ class SegmentationWorker:
     @property
     def pid(self) -> int:
         return self._w.pid
+
+    @property
+    def nice(self) -> int:
+        """How far below the caller's CPU priority the worker runs (0 if lowering failed)."""
+        return self._w.nice
 
     def _job(self, kind: str, views: list[View], cloud: SfmCloud, cfg: SegmentationConfig,
              mask_keys: Optional[Collection[str]], context_masks: Optional[dict] = None):
