@@ -442,6 +442,55 @@ def test_plane_check_calls_the_floor_floor_and_the_object_not():
     assert (half & views[4].gt_mask[::2, ::2]).sum() < 0.02 * views[4].gt_mask[::2, ::2].sum()
 
 
+@pytest.mark.parametrize("dist", [(), (-0.12, 0.03, 0.001, -0.002, 0.0)])
+def test_plane_check_samples_in_float32_where_float64_would(dist):
+    """``PointSet``: the plane check projects each crop's points into ~8 neighbours in float32
+    from a nearby origin. Against ``project_distorted`` (float64) the pixel coordinates near
+    the image agree to 1e-3 px (pinhole and plumb_bob), points behind the camera, missing or
+    non-finite are never valid, and the colours match the float64 coordinates' remap."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency, PointSet
+    rng = np.random.default_rng(3)
+    cam = CameraIntrinsics(320, 240, 280.0, 285.0, 161.0, 118.5,
+                           distortion_model="plumb_bob" if dist else "none",
+                           dist=np.array(dist, float))
+    poses = [look_at(np.array([4.0 * np.cos(a), 4.0 * np.sin(a), 2.0]), np.zeros(3),
+                     np.array([0, 0, 1.0])) for a in (0.0, 0.4)]
+    img = (rng.random((240, 320, 3)) * 255).astype(np.uint8)
+    views = [View(key=str(k), stamp_ns=k, camera=cam, pose=pq, image=img)
+             for k, pq in enumerate(poses)]
+    X = rng.normal(0.0, 0.8, (5000, 3))
+    X[rng.random(5000) > 0.9] += [5.0, 0.0, 0.0]  # some far off: behind, outside
+    X[:3] = [np.nan, 0.0, 0.0], [np.inf, 1.0, 1.0], poses[1].t + [0.0, 0.0, -0.5]
+    hit = rng.random(5000) > 0.1
+    hit[:3] = True
+    pts = PointSet(X, hit)
+    u, v, z = pts.project(cam, poses[1])
+    uv, z64 = project_distorted(X, cam, poses[1])
+    good = hit & (z64 > 0.05) & np.isfinite(uv).all(1)
+    # within reach of the image (far outside it float32 keeps ~7 digits, not 1e-3 px)
+    near = good & (np.abs(uv[:, 0] - 160) < 480) & (np.abs(uv[:, 1] - 120) < 360)
+    assert near.sum() > 3000
+    np.testing.assert_allclose(u[near], uv[near, 0], atol=1e-3)
+    np.testing.assert_allclose(v[near], uv[near, 1], atol=1e-3)
+    pc = PlaneConsistency(views, np.array([0.0, 0.0, 1.0, 0.0]), np.zeros(3),
+                          PlaneCheckConfig(enabled=True))
+    col, ok = pc.sample(1, pts, None, (50, 100))
+    assert np.array_equal(ok, pc.sample(1, X, hit, (50, 100))[1])  # arrays: the same path
+    assert not ok.ravel()[:3].any()  # nan, inf and a point behind the camera
+    with np.errstate(invalid="ignore"):
+        ok64 = good & (uv[:, 0] >= 0) & (uv[:, 0] <= 319) & (uv[:, 1] >= 0) & (uv[:, 1] <= 239)
+    edge = np.minimum(np.abs(uv[:, 0] - np.array([[0], [319]])).min(0),
+                      np.abs(uv[:, 1] - np.array([[0], [239]])).min(0)) < 1e-3
+    assert np.array_equal(ok.ravel()[~edge], ok64[~edge])
+    # the colours of float64 coordinates (the form before), through the same bilinear remap
+    import cv2
+    mx = np.where(ok64, uv[:, 0], -1).astype(np.float32).reshape(50, 100)
+    my = np.where(ok64, uv[:, 1], -1).astype(np.float32).reshape(50, 100)
+    col64 = cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    assert np.abs(col - col64)[ok].mean() < 0.5  # on 0-255: remap's 1/32-px grid at most
+
+
 def test_background_planes_find_the_wall_not_the_object():
     """A wall behind the object is returned; the support plane (touching the object) and no
     plane through the object are."""
