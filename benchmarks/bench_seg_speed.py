@@ -14,15 +14,23 @@ time and the load average: run it under ``flock /tmp/ooi_timing.lock`` on a shar
 
     OMP_NUM_THREADS=1 flock /tmp/ooi_timing.lock .venv/bin/python benchmarks/bench_seg_speed.py \
         --sizes 10000 100000 --pipeline aircraft:320x240 aircraft:640x360
+
+``--pipeline-set NAME=JSON`` times a variant (overrides of ``ours``) right after the default
+on each capture, ``--repeats`` times in turn; ``--sizes`` with no value skips the clouds:
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_speed.py --sizes \
+        --pipeline aircraft:320x240 --pipeline-set 'it2={"refine": {"iterations": 2}}'
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -64,25 +72,34 @@ def load_note() -> str:
     return f"load {la[0]:.2f}/{la[1]:.2f}, process CPU {time.process_time():.0f} s"
 
 
-def pipeline_timings(cases: list[str], cache: str) -> None:
-    """Per-stage seconds of the default segment() on cached SfM captures."""
+def pipeline_timings(cases: list[str], cache: str, variants: Optional[dict] = None,
+                     repeats: int = 1) -> None:
+    """Per-stage seconds of the default segment() on cached SfM captures; with ``variants``
+    ({name: overrides of ``ours``}) each variant runs right after the default on the same
+    capture, ``repeats`` times in turn (alternating, so load drifts hit both alike)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_seg_quality import load_case
     stages = ["roi", "floor", "density", "noise", "mesh", "masks", "refine"]
-    print("\nwhole default segment(), 60 views (seconds per stage; plane check inside refine)")
-    print(f"{'case':>18} " + " ".join(f"{s:>8}" for s in stages)
-          + f" {'plane':>7} {'total':>7} {'CPU s':>7}  load")
+    runs = {"default": {}, **(variants or {})}
+    print("\nwhole segment(), 60 views (seconds per stage; plane check inside refine)")
+    print(f"{'case':>18} {'variant':>10} " + " ".join(f"{s:>8}" for s in stages)
+          + f" {'plane':>7} {'total':>7} {'CPU s':>7}  load   IoU")
     for case in cases:
         scene, size = case.split(":")
         w, h = (int(x) for x in size.split("x"))
         cap, cloud, _ = load_case(scene, 0, 60, (w, h), "sfm", Path(cache))
-        cpu0 = time.process_time()
-        r, t = timed(lambda: segment(cap, cloud, make_config("ours")))
-        cpu = time.process_time() - cpu0
-        plane = r.params.get("refine", {}).get("plane_check_s", float("nan"))
-        la = os.getloadavg()
-        print(f"{case:>18} " + " ".join(f"{r.timings.get(s, float('nan')):8.2f}" for s in stages)
-              + f" {plane:7.2f} {t:7.2f} {cpu:7.2f}  {la[0]:.2f}", flush=True)
+        for _ in range(max(1, repeats)):
+            for name, over in runs.items():
+                cpu0 = time.process_time()
+                r, t = timed(lambda: segment(cap, cloud, make_config("ours", over)))
+                cpu = time.process_time() - cpu0
+                plane = r.params.get("refine", {}).get("plane_check_s", float("nan"))
+                la = os.getloadavg()
+                iou = (r.metrics or {}).get("mean", {}).get("iou", float("nan"))
+                print(f"{case:>18} {name:>10} "
+                      + " ".join(f"{r.timings.get(s, float('nan')):8.2f}" for s in stages)
+                      + f" {plane:7.2f} {t:7.2f} {cpu:7.2f}  {la[0]:.2f}  {iou:.3f}",
+                      flush=True)
 
 
 CPU: list[float] = []  # CPU seconds of each timed() call, in call order
@@ -113,10 +130,12 @@ def naive_mask(xyz: np.ndarray, radii: np.ndarray, view: View) -> np.ndarray:
 
 
 def primitives(repeats: int = 200) -> None:
-    """The refinement's two hottest numpy primitives next to the form they replaced (session
-    26), same inputs, same process: the rigid transform of a crop's points (``to_camera``
-    vs ``[N, 3] @ R.T + t``) and the plane check's box means (``cv2.boxFilter`` vs
-    ``ndimage.uniform_filter``, float32)."""
+    """The refinement's hottest numpy primitives next to the form they replaced, same inputs,
+    same process: the rigid transform of a crop's points (``to_camera`` vs ``[N, 3] @ R.T +
+    t``) and the plane check's box means (``cv2.boxFilter`` vs ``ndimage.uniform_filter``,
+    float32), session 26; the plane check's remap coordinates of a crop's points in a
+    neighbour (float32 from a ``PointSet`` vs float64 ``project_distorted``), session 27
+    (max |diff| in px)."""
     import cv2
     from scipy import ndimage
 
@@ -136,6 +155,46 @@ def primitives(repeats: int = 200) -> None:
              lambda: ndimage.uniform_filter(a, win, mode="nearest"),
              lambda: cv2.boxFilter(a, -1, (win, win), borderType=cv2.BORDER_REPLICATE),
              repeats)
+    # session 27: the plane check's remap coordinates of a crop's 3D points in a neighbour,
+    # float64 (``project_distorted``, then cast) vs float32 from a prepared ``PointSet``
+    import dataclasses
+    from ooi_seg_ros.seg.masks import project_distorted
+    from ooi_seg_ros.seg.photo import PointSet
+    views = make_views(2)
+    cam_i, pose_j = views[0].camera, views[1].pose
+    for n, dist in ((50000, (0.0,) * 5), (90000, (0.0,) * 5),
+                    (90000, (-0.1, 0.02, 0.0, 0.0, 0.0))):
+        cam = dataclasses.replace(cam_i, dist=np.array(dist), distortion_model="plumb_bob")
+        # points near the object the cameras orbit, as the crops' plane / depth points are
+        X = np.array([0.0, 0.0, 1.0]) + rng.normal(0.0, 0.5, (n, 3))
+        hit = rng.random(n) > 0.05
+
+        def old_maps():
+            uv, z = project_distorted(X, cam, pose_j)
+            ok = hit & (z > 0) & np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
+            ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1)
+            ok &= (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+            return np.where(ok, uv[:, 0], -1.0).astype(np.float32), ok
+
+        pts = PointSet(X, hit)
+
+        def new_maps():
+            u, v, z = pts.project(cam, pose_j)
+            with np.errstate(invalid="ignore"):
+                ok = pts.hit & (z > 0) & (u >= 0) & (u <= cam.width - 1)
+                ok &= (v >= 0) & (v <= cam.height - 1)
+            u[~ok] = -1.0
+            v[~ok] = -1.0
+            return u, ok
+        tag = "distorted" if any(dist) else "pinhole"
+        _row(f"sample coords N={n // 1000}k {tag}", lambda: old_maps()[0],
+             lambda: new_maps()[0], max(10, repeats // 10))
+        t0 = time.perf_counter()
+        for _ in range(10):
+            PointSet(X, hit)
+        once = (time.perf_counter() - t0) * 100
+        print(f"{'  + PointSet, once per crop':<34} {'':>10} {once:>8.3f}"
+              f"   (shared by the crop's ~8 neighbours)")
 
 
 def _row(name: str, before, now, repeats: int, now_array=None) -> None:
@@ -155,16 +214,29 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--primitives", action="store_true",
                     help="only time the refinement's numpy primitives against their old form")
-    ap.add_argument("--sizes", nargs="+", type=int, default=[10000, 100000, 1000000])
+    ap.add_argument("--sizes", nargs="*", type=int, default=[10000, 100000, 1000000],
+                    help="cloud sizes of the per-stage table (none: only --pipeline)")
     ap.add_argument("--sklearn-sizes", nargs="+", type=int, default=[5000, 10000, 20000])
     ap.add_argument("--mask-views", type=int, default=300)
     ap.add_argument("--pipeline", nargs="*", default=[], metavar="SCENE:WxH",
                     help="also time the whole default segment() on these cached captures")
+    ap.add_argument("--pipeline-set", action="append", default=[], metavar="NAME=JSON",
+                    help="--pipeline: also time this variant (overrides of ours) next to the "
+                         "default on each capture (repeatable)")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="--pipeline: runs of the default and each variant, in turn")
     ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2",
                     help="bench_seg_quality.py's SfM cache")
     args = ap.parse_args()
     if args.primitives:
         primitives()
+        return
+    variants = {}
+    for item in args.pipeline_set:
+        name, _, js = item.partition("=")
+        variants[name] = json.loads(js)
+    if not args.sizes:
+        pipeline_timings(args.pipeline, args.cache, variants, args.repeats)
         return
     noise_cfg = make_config("ours").noise
     print(load_note())
@@ -234,7 +306,7 @@ def main() -> None:
           f"ms/view measured on 1 view; pixel agreement with splat {agree:.4f})")
     print(f"  [{load_note()}]")
     if args.pipeline:
-        pipeline_timings(args.pipeline, args.cache)
+        pipeline_timings(args.pipeline, args.cache, variants, args.repeats)
 
 
 if __name__ == "__main__":

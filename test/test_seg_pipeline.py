@@ -252,3 +252,24 @@ def test_grabcut_on_enlarged_crops_keeps_more_of_a_thin_object(scene):
     a, b = one.metrics["mean"], two.metrics["mean"]
     assert b["iou"] > a["iou"] + 0.01
     assert b["recall"] >= a["recall"] and b["precision"] >= a["precision"]
+
+
+def test_grabcut_iterations_split_between_the_crop_and_the_enlarged_crop():
+    """``refine.enlarged_iterations``: the first GrabCut iterations on the crop at its own
+    size, the rest (or, at 0, one cut with frozen colour models) on the enlarged crop. Each
+    split runs, keeps the image's size, is recorded in the report and stays close to the
+    default (all on the enlarged crop); a count below -1 is refused with the option's name."""
+    sim = simulate_capture("bicycle", n_views=6, width=320, height=240, seed=0)
+    cloud = depth_proxy_cloud(sim, 300, seed=0)
+    full = segment(sim.capture, cloud, make_config("ours"))
+    assert full.params["refine"]["enlarged_iterations"] == -1
+    for k in (0, 2):
+        part = segment(sim.capture, cloud,
+                       make_config("ours", {"refine": {"enlarged_iterations": k}}))
+        assert part.params["refine"]["enlarged_iterations"] == k
+        assert all(m.shape == (240, 320) for m in part.masks.values())
+        agree = [(m & full.masks[key]).sum() / max(1, (m | full.masks[key]).sum())
+                 for key, m in part.masks.items()]
+        assert min(agree) > 0.75 and np.mean(agree) > 0.9, (k, agree)
+    with pytest.raises(ValueError, match="enlarged_iterations"):
+        segment(sim.capture, cloud, make_config("ours", {"refine": {"enlarged_iterations": -2}}))

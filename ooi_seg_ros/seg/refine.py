@@ -56,6 +56,11 @@ class RefineConfig:
     upsample: int = 1  # GrabCut on the crop enlarged this many times (labels nearest, image
     # bicubic) when the crop is below max_side, its result averaged back (>= half the sub-
     # pixels object): a thin part 2 px wide is 4 px wide to the graph cut's smoothness term
+    enlarged_iterations: int = -1  # upsample > 1: how many of the ``iterations`` run on the
+    # enlarged crop, the others first on the crop at its own size (a quarter of the pixels;
+    # the colour models and labels they leave carry over): -1 = all of them (session 25);
+    # 0 = none: one graph cut on the enlarged crop with the models learnt on the crop frozen
+    # (the enlarged grid matters to the smoothness term; see ``_grabcut_pass``)
     edge_window: int = 0  # outline matting: a pixel just outside the mask joins it when its
     # colour is nearer the mean of the object pixels than of the background pixels within this
     # window (px) around it; 0 = off (see ``edge_matte``)
@@ -231,10 +236,24 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
             if up > 1:
                 hh, ww = gc.shape
                 gcu = cv2.resize(gc, (ww * up, hh * up), interpolation=cv2.INTER_NEAREST)
-                imu = cv2.resize(np.ascontiguousarray(img[..., ::-1]), (ww * up, hh * up),
-                                 interpolation=cv2.INTER_CUBIC)
-                cv2.grabCut(imu, gcu, None, bgd, fgd, int(cfg.iterations),
-                            cv2.GC_INIT_WITH_MASK)
+                bgr = np.ascontiguousarray(img[..., ::-1])
+                imu = cv2.resize(bgr, (ww * up, hh * up), interpolation=cv2.INTER_CUBIC)
+                k = int(cfg.enlarged_iterations)
+                n_it = int(cfg.iterations)
+                if 0 <= k < n_it:
+                    # the colour models and labels of the first iterations need no sub-
+                    # pixels: learn them on the crop, then continue on the enlarged crop
+                    # from its labels (k > 0) or cut it once with the models frozen (k = 0)
+                    g1 = gc.copy()
+                    cv2.grabCut(bgr, g1, None, bgd, fgd, n_it - k, cv2.GC_INIT_WITH_MASK)
+                    if k > 0:
+                        gcu = cv2.resize(g1, (ww * up, hh * up),
+                                         interpolation=cv2.INTER_NEAREST)
+                        cv2.grabCut(imu, gcu, None, bgd, fgd, k, cv2.GC_EVAL)
+                    else:
+                        cv2.grabCut(imu, gcu, None, bgd, fgd, 1, cv2.GC_EVAL_FREEZE_MODEL)
+                else:
+                    cv2.grabCut(imu, gcu, None, bgd, fgd, n_it, cv2.GC_INIT_WITH_MASK)
                 fgu = (gcu == cv2.GC_FGD) | (gcu == cv2.GC_PR_FGD)
                 share = fgu.reshape(hh, up, ww, up).mean(axis=(1, 3))
                 gc = np.where(share >= 0.5, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
@@ -699,12 +718,16 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     if cfg.plane_check.behind_window < 0:
         raise ValueError(f"refine.plane_check.behind_window={cfg.plane_check.behind_window}; "
                          f"use a patch side in px (0 = plane_check.window)")
+    if int(cfg.enlarged_iterations) < -1:
+        raise ValueError(f"refine.enlarged_iterations={cfg.enlarged_iterations}; use -1 (all "
+                         f"on the enlarged crop), 0 (one frozen cut) or a count")
     if int(cfg.upsample) < 1:
         raise ValueError(f"refine.upsample={cfg.upsample}; use 1 (GrabCut at the image's size) "
                          f"or more")
     fg_obs = _obs_by_view(ooi, views)
     bg_obs = _obs_by_view(background, views)
-    params: dict = {"fg_seeds": cfg.fg_seeds, "upsample": int(cfg.upsample)}
+    params: dict = {"fg_seeds": cfg.fg_seeds, "upsample": int(cfg.upsample),
+                    "enlarged_iterations": int(cfg.enlarged_iterations)}
     floor = None
     if cfg.plane_check.enabled and plane is not None and target is not None:
         floor = PlaneConsistency(views, np.asarray(plane, float), np.asarray(target, float),
