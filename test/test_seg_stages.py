@@ -519,6 +519,25 @@ def test_background_planes_skip_a_second_layer_of_the_same_wall():
     assert len(background_planes(wall, obj, cams, 0.02, 3, seed=0)) == 1
 
 
+def test_background_planes_are_the_same_from_call_to_call():
+    """The same input gives the same planes (open3d's RANSAC, used until session 28, gave
+    different ones from call to call whatever its seed, and the masks moved with them); a
+    thick, noisy wall lets every RANSAC draw pick a slightly different plane."""
+    from ooi_seg_ros.seg.photo import background_planes
+    rng = np.random.default_rng(2)
+    floor = np.c_[rng.uniform(-4, 4, (4000, 2)), rng.normal(0, 0.01, 4000)]
+    wall = np.c_[rng.uniform(-4, 4, 4000), np.full(4000, 4.0) + rng.normal(0, 0.03, 4000),
+                 rng.uniform(0, 3, 4000)]
+    obj = _sphere(800, r=0.5, c=(0, 0, 0.5))
+    cams = np.array([v.pose.t for v in _ring_views(12, radius=3.0, height=1.5)])
+    runs = [background_planes(np.vstack([floor, wall]), obj, cams, 0.02, 3, seed=0)
+            for _ in range(6)]
+    assert len(runs[0]) >= 1
+    assert all(np.array_equal(r, runs[0]) for r in runs[1:])
+    other = background_planes(np.vstack([floor, wall]), obj, cams, 0.02, 3, seed=1)
+    assert len(other) == len(runs[0])  # another seed: another draw of the same wall
+
+
 def test_eps_widening_joins_a_sparse_part_but_not_a_neighbour():
     rng = np.random.default_rng(6)
     body = _sphere(2000, r=0.3, c=(0, 0, 0), seed=1)
@@ -816,6 +835,41 @@ def test_hull_additions_bring_back_a_part_other_views_hold():
     _, pn = hull_additions(masks, decoded, xyz, models,
                            RefineConfig(hull_add=True, blend_detect=False))
     assert pn["graph_views"] == 0
+
+
+def test_hull_grid_projected_in_float32_votes_as_in_float64(monkeypatch):
+    """The hull's voxel grid is projected into every view in float32 offsets (``PointSet``);
+    its votes, and so the hull and the masks it grows, are those of float64 projections."""
+    from ooi_seg_ros.seg import refine
+    from ooi_seg_ros.seg.masks import point_radii
+    base = _ring_views(8)
+    xyz = _sphere(1500)
+    masks = point_masks(xyz, point_radii(xyz, 4, 1.0), base, MaskConfig(closing_kernel=3))
+    views = []
+    for v in base:
+        img = np.zeros((48, 64, 3), np.uint8)
+        img[...] = (40, 160, 40)
+        img[masks[v.key]] = (200, 30, 30)
+        views.append(View(v.key, v.stamp_ns, v.camera, v.pose, img))
+    k0 = views[0].key
+    masks[k0] = masks[k0] & (np.arange(64) < 36)[None, :]  # a part for the hull to bring back
+    models = {v.key: (_gmm_model([40, 160, 40], 100.0), _gmm_model([30, 30, 200], 100.0),
+                      np.zeros_like(masks[k0])) for v in views}
+    cfg = refine.RefineConfig(hull_add=True, hull_voxel_px=0.5)  # a fine grid: many centres
+    out32, p32 = refine.hull_additions(masks, views, xyz, models, cfg)
+
+    class Float64Cells:
+        def __init__(self, X, hit):
+            self.X = X
+
+        def project(self, cam, pose):
+            uv, z = project_distorted(self.X, cam, pose)
+            return uv[:, 0], uv[:, 1], z
+    monkeypatch.setattr(refine, "PointSet", Float64Cells)
+    out64, p64 = refine.hull_additions(masks, views, xyz, models, cfg)
+    assert p32["grid"] == p64["grid"] > 50_000 and p32["voxels"] == p64["voxels"] > 0
+    assert p32["added_px"] == p64["added_px"] > 0
+    assert all(np.array_equal(out32[k], out64[k]) for k in out64)
 
 
 @pytest.mark.parametrize("scene", ["aircraft", "tabletop", "bicycle", "toycar", "stool"])

@@ -536,11 +536,12 @@ def background_planes(bg_xyz: np.ndarray, ooi_xyz: np.ndarray, cam_centers: np.n
     behind), each with the cameras on one side and every OOI point on the cameras' side and
     clear of it (farther than the object's own radius), so no plane can explain the object.
 
-    Planes come from sequential RANSAC at ``threshold`` (the floor stage's inlier threshold);
+    Planes come from sequential RANSAC at ``threshold`` (the floor stage's inlier threshold;
+    its seeded ``_fit_plane``, so the same input gives the same planes);
     a plane needs >= 5% of the background points (and >= 50); a plane parallel to one already
     kept and within the object's radius of it is the same surface again and is skipped.
     """
-    import open3d as o3d
+    from .floor import _fit_plane
     out: list[np.ndarray] = []
     if max_planes <= 0 or len(bg_xyz) < 50 or len(ooi_xyz) == 0:
         return np.zeros((0, 4))
@@ -551,10 +552,10 @@ def background_planes(bg_xyz: np.ndarray, ooi_xyz: np.ndarray, cam_centers: np.n
     for k in range(3 * max_planes):
         if len(out) >= max_planes or len(rest) < min_in:
             break
-        o3d.utility.random.seed(int(seed) + 7919 * (k + 1))
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
-        model, inl = pc.segment_plane(distance_threshold=float(threshold), ransac_n=3,
-                                      num_iterations=1000)
+        # the floor stage's seeded RANSAC: open3d's segment_plane, used here until session
+        # 28, returns different planes from call to call whatever its seed (its iterations
+        # run in parallel), which moved ~1% of a capture's mask pixels from run to run
+        model, inl = _fit_plane(rest, float(threshold), 1000, int(seed) + 7919 * (k + 1))
         if len(inl) < min_in:
             break
         m = np.asarray(model, float)
