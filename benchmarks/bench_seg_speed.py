@@ -135,7 +135,8 @@ def primitives(repeats: int = 200) -> None:
     t``) and the plane check's box means (``cv2.boxFilter`` vs ``ndimage.uniform_filter``,
     float32), session 26; the plane check's remap coordinates of a crop's points in a
     neighbour (float32 from a ``PointSet`` vs float64 ``project_distorted``), session 27
-    (max |diff| in px)."""
+    (max |diff| in px); the hull additions' voxel grid voted on by a view's mask, the same
+    two ways, session 28 (max change of a vote: 0 = the same votes)."""
     import cv2
     from scipy import ndimage
 
@@ -195,6 +196,30 @@ def primitives(repeats: int = 200) -> None:
         once = (time.perf_counter() - t0) * 100
         print(f"{'  + PointSet, once per crop':<34} {'':>10} {once:>8.3f}"
               f"   (shared by the crop's ~8 neighbours)")
+    # session 28: the hull additions' voxel grid (up to ``hull_max_voxels`` centres) voted
+    # on by every view's mask: float64 ``project_distorted`` vs float32 from a ``PointSet``
+    # made once per capture; the row's diff is the largest change of a voxel's vote
+    cam = views[0].camera
+    mask = np.zeros((cam.height, cam.width), bool)
+    mask[cam.height // 4:3 * cam.height // 4, cam.width // 4:3 * cam.width // 4] = True
+    for side in (50, 100):
+        ax = np.linspace(-0.6, 0.6, side)
+        grid = np.stack(np.meshgrid(ax, ax, ax + 1.0, indexing="ij"), -1).reshape(-1, 3)
+
+        def votes(u, w, z):
+            ui, vi = np.rint(u), np.rint(w)
+            with np.errstate(invalid="ignore"):
+                ok = (z > 1e-9) & (ui >= 0) & (ui < cam.width) & (vi >= 0) & (vi < cam.height)
+            out = np.full(len(grid), -1, np.int8)
+            out[ok] = mask[vi[ok].astype(int), ui[ok].astype(int)]
+            return out
+
+        def old_votes():
+            uv, z = project_distorted(grid, cam, pose_j)
+            return votes(uv[:, 0], uv[:, 1], z)
+        cells = PointSet(grid, np.ones(len(grid), bool))
+        _row(f"hull grid votes, {side ** 3 // 1000}k voxels", old_votes,
+             lambda: votes(*cells.project(cam, pose_j)), max(5, repeats // 40))
 
 
 def _row(name: str, before, now, repeats: int, now_array=None) -> None:

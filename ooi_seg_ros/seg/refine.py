@@ -29,7 +29,7 @@ from scipy import ndimage
 from ..core.geometry import finite_rows
 from ..core.types import SfmCloud, View
 from .masks import MaskConfig, fill_small_holes, point_masks, project_distorted
-from .photo import PlaneCheckConfig, PlaneConsistency
+from .photo import PlaneCheckConfig, PlaneConsistency, PointSet
 
 
 @dataclass
@@ -529,12 +529,16 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     seen = np.zeros(len(grid), np.int32)
     inside = np.zeros(len(grid), np.int32)
+    # the grid (up to hull_max_voxels centres) is projected into every view: in float32
+    # offsets from its centre, ~2-3x faster than float64 and the same pixel but where a
+    # centre falls within ~1e-4 px of a pixel border
+    cells = PointSet(grid, np.ones(len(grid), bool))
     for v in views:
         if v.key not in masks:
             continue
         c = v.camera
-        uv, z = project_distorted(grid, c, v.pose)
-        ui, vi = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        u, w, z = cells.project(c, v.pose)
+        ui, vi = np.rint(u), np.rint(w)
         ok = (z > 1e-9) & (ui >= 0) & (ui < c.width) & (vi >= 0) & (vi < c.height)
         seen += ok
         inside[ok] += masks[v.key][vi[ok].astype(int), ui[ok].astype(int)]
