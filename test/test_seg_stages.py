@@ -872,6 +872,51 @@ def test_hull_grid_projected_in_float32_votes_as_in_float64(monkeypatch):
     assert all(np.array_equal(out32[k], out64[k]) for k in out64)
 
 
+def test_hull_cut_grown_drops_a_leak_only_this_view_holds():
+    """``hull_cut_grown``: mask pixels GrabCut grew past the splatted silhouette are dropped
+    when the other views' masks do not hold them (a band leaking along a background edge of
+    the object's colour); a part no point covers but every view's mask holds stays."""
+    from ooi_seg_ros.seg.masks import point_radii
+    from ooi_seg_ros.seg.refine import RefineConfig, hull_additions
+    base = _ring_views(8)
+    xyz = _sphere(1500)
+    full = point_masks(xyz, point_radii(xyz, 4, 1.0), base, MaskConfig(closing_kernel=3))
+    views, sil = [], {}
+    for v in base:
+        img = np.zeros((48, 64, 3), np.uint8)
+        img[...] = (40, 160, 40)
+        img[full[v.key]] = (200, 30, 30)
+        views.append(View(v.key, v.stamp_ns, v.camera, v.pose, img))
+        xs = np.nonzero(full[v.key])[1]
+        # the splatted silhouette misses the right part (no SfM point there) in every view;
+        # GrabCut grew the masks back over it
+        sil[v.key] = full[v.key] & (np.arange(64) < xs.mean() + 2)[None, :]
+    k0 = views[0].key
+    ys, xs = np.nonzero(full[k0])
+    row = int(round(ys.mean()))
+    leak = np.zeros_like(full[k0])
+    leak[row - 1:row + 2, :xs.min()] = True  # a rail of object colour out to the image edge
+    views[0].get_image()[leak] = (200, 30, 30)
+    masks = {k: m.copy() for k, m in full.items()}
+    masks[k0] |= leak
+    models = {v.key: (_gmm_model([40, 160, 40], 100.0), _gmm_model([30, 30, 200], 100.0),
+                      np.zeros_like(full[k0])) for v in views}
+    kept, p0 = hull_additions(masks, views, xyz, models, RefineConfig(hull_add=True), None, sil)
+    assert kept[k0][leak].all() and p0["cut_px"] == 0  # off by default
+    for agree in (0.5, 0.25):
+        cfg = RefineConfig(hull_add=True, hull_cut_grown=True, hull_cut_agree=agree)
+        out, p = hull_additions(masks, views, xyz, models, cfg, None, sil)
+        # the rail is cut but next to the sphere, where the hull of 8 small views is fatter
+        # than the sphere itself
+        far = leak & ~ndimage.binary_dilation(full[k0], iterations=4)
+        assert p["cut_px"] >= 0.8 * leak.sum() and not out[k0][far].any()
+        for v in views:  # nothing the views agree on is cut: the grown right parts stay
+            assert out[v.key][full[v.key]].mean() > 0.99
+    # no silhouettes given (a caller that does not pass them): nothing is cut
+    out, p = hull_additions(masks, views, xyz, models, cfg)
+    assert out[k0][leak].all() and p["cut_px"] == 0
+
+
 @pytest.mark.parametrize("scene", ["aircraft", "tabletop", "bicycle", "toycar", "stool"])
 def test_chroma_sharpness_tells_decoded_jpeg_from_full_colour(scene):
     """Every simulator scene: its renders measure ~1 (colour as sharp as brightness), the

@@ -95,7 +95,7 @@ def preset(method: str) -> dict:
                           "hull_carve": False},
                 "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
                            "edge_alpha": 0.4, "max_side": 400, "hull_add": True,
-                           "upsample": 2,
+                           "upsample": 2, "hull_cut_grown": True,
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,
