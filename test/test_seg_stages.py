@@ -872,6 +872,30 @@ def test_hull_grid_projected_in_float32_votes_as_in_float64(monkeypatch):
     assert all(np.array_equal(out32[k], out64[k]) for k in out64)
 
 
+def test_border_leak_drops_growth_to_an_image_side_the_silhouette_does_not_reach():
+    """``refine.border_leak``: a region GrabCut grew from the silhouette out to the top edge
+    (which the silhouette does not reach) leaves; growth that stays inside the image, and
+    growth at a side the silhouette itself reaches (the object leaves the frame there), stay."""
+    from ooi_seg_ros.seg.refine import _drop_border_leaks
+    H, W = 40, 60
+    m = np.zeros((H, W), bool)
+    m[8:30, 20:40] = True  # the silhouette, clear of every side
+    res = m.copy()
+    res[0:8, 25:35] = True  # grown up to the top edge: a leak
+    res[30:33, 22:30] = True  # grown below, inside the image: kept
+    box = (0, H, 0, W)  # the crop reached the image's edges (clipped band)
+    out = _drop_border_leaks(res, m, m, box)
+    assert not out[0:8, 25:35].any() and out[30:33, 22:30].all() and out[m].all()
+    # the silhouette reaches the top row: the object leaves the frame there, growth stays
+    m2 = m.copy()
+    m2[0:8, 38:40] = True
+    res2 = res | m2
+    assert np.array_equal(_drop_border_leaks(res2, m2, m2, box), res2)
+    # a crop that does not reach the image's top edge has a background margin there
+    crop = m[4:, :]
+    assert np.array_equal(_drop_border_leaks(res[4:, :], crop, m, (4, H, 0, W)), res[4:, :])
+
+
 def test_hull_cut_grown_drops_a_leak_only_this_view_holds():
     """``hull_cut_grown``: mask pixels GrabCut grew past the splatted silhouette are dropped
     when the other views' masks do not hold them (a band leaking along a background edge of

@@ -88,6 +88,11 @@ class RefineConfig:
     hull_cut_agree: float = 0.25  # hull_cut_grown: the hull it tests against holds the voxels
     # more than this share of the framing views hold (0.5, the additions' majority, also cut
     # true outline pixels of the aircraft and the bicycle: recall -0.0001 to -0.0025)
+    border_leak: bool = False  # a region GrabCut grew past the splatted silhouette out to an
+    # image side the silhouette does not reach leaves the mask: the crop has no background
+    # margin beyond the image's edge, so nothing stopped the cut there (a bright window above
+    # a crown that nears the top of the photo); the hull additions may bring back what other
+    # views' masks hold
     hull_connected: bool = True  # hull_add: keep only the added pixels 8-connected to the mask
     # (through other added pixels): a lone apron speck of the fuselage's grey is not a part
     hull_photo: bool = False  # hull_add: an added pixel must also be photo-consistent: at some
@@ -285,6 +290,8 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
                              interpolation=cv2.INTER_NEAREST).astype(bool)
         if cfg.opening > 0:
             res = ndimage.binary_opening(res, iterations=int(cfg.opening))
+        if cfg.border_leak:
+            res = _drop_border_leaks(res, crop, m, box)
         if floor is not None and fl_obj.any():
             # silhouette pixels the object's depth explains and the plane does not (after
             # the opening, which would take thin stems kept this way with it); with
@@ -326,6 +333,30 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         out[v.key] = full
         refined += 1
     return out, refined, rejected
+
+
+def _drop_border_leaks(res: np.ndarray, crop: np.ndarray, m: np.ndarray, box: tuple
+                       ) -> np.ndarray:
+    """``res`` (a crop's GrabCut result) without the regions it grew past the silhouette
+    ``crop`` that reach an image side the view's silhouette ``m`` does not reach."""
+    grown = res & ~crop
+    if not grown.any():
+        return res
+    H, W = m.shape
+    edge = np.zeros_like(res)
+    if box[0] == 0 and not m[0].any():
+        edge[0] = True
+    if box[1] == H and not m[H - 1].any():
+        edge[-1] = True
+    if box[2] == 0 and not m[:, 0].any():
+        edge[:, 0] = True
+    if box[3] == W and not m[:, W - 1].any():
+        edge[:, -1] = True
+    if not (edge & grown).any():
+        return res
+    lab, _ = ndimage.label(grown, np.ones((3, 3), bool))
+    hit = np.unique(lab[edge & grown])
+    return res & ~np.isin(lab, hit[hit > 0])
 
 
 def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.ndarray,
