@@ -941,6 +941,56 @@ def test_hull_cut_grown_drops_a_leak_only_this_view_holds():
     assert out[k0][leak].all() and p["cut_px"] == 0
 
 
+def test_border_leak_hull_drops_a_leak_to_the_edge_and_keeps_a_part_that_leaves_the_frame():
+    """``border_leak_hull``: growth past the silhouette out to an image side the silhouette
+    does not reach leaves the mask where its rays miss the hull of all views' masks (a band of
+    the object's colour up to the top edge, held by this view alone) and stays where the
+    other views hold it (the object's own side, cut by the frame in this view only) --
+    where the per-view ``border_leak`` would drop both."""
+    from ooi_seg_ros.seg.refine import RefineConfig, _drop_border_leaks, hull_additions
+    base = _ring_views(8)
+    c = base[0].camera
+    # view 0 looks past the sphere: its right side leaves the frame there
+    cam0 = CameraIntrinsics(c.width, c.height, c.fx, c.fy, c.width - 4.0, c.cy)
+    base[0] = View(base[0].key, base[0].stamp_ns, cam0, base[0].pose)
+    xyz = _sphere(1500)
+    full = point_masks(xyz, np.full(len(xyz), 0.05), base, MaskConfig(closing_kernel=3))
+    k0 = base[0].key
+    H, W = full[k0].shape
+    assert full[k0][:, W - 1].any() and not full[k0][0].any()
+    views, sil = [], {}
+    for v in base:
+        img = np.zeros((H, W, 3), np.uint8)
+        img[...] = (40, 160, 40)
+        img[full[v.key]] = (200, 30, 30)
+        views.append(View(v.key, v.stamp_ns, v.camera, v.pose, img))
+        sil[v.key] = full[v.key].copy()
+    sil[k0] &= (np.arange(W) < W - 6)[None, :]  # no SfM point near the frame's edge
+    ys, xs = np.nonzero(full[k0])
+    col = int(np.median(xs[xs < W - 8]))
+    leak = np.zeros_like(full[k0])
+    leak[:ys.min(), col - 1:col + 2] = True  # a pole of object colour up to the top edge
+    views[0].get_image()[leak] = (200, 30, 30)
+    masks = {k: m.copy() for k, m in full.items()}
+    masks[k0] |= leak
+    part = full[k0] & ~sil[k0]
+    assert part[:, W - 1].any() and leak[0].any()
+    models = {v.key: (_gmm_model([40, 160, 40], 100.0), _gmm_model([30, 30, 200], 100.0),
+                      np.zeros_like(full[k0])) for v in views}
+    # the per-view rule drops both
+    per_view = _drop_border_leaks(masks[k0], sil[k0], sil[k0], (0, H, 0, W))
+    assert not per_view[leak].any() and not per_view[part].any()
+    kept, p0 = hull_additions(masks, views, xyz, models, RefineConfig(hull_add=True), None, sil)
+    assert kept[k0][leak].all() and p0["border_cut_px"] == 0  # off by default
+    cfg = RefineConfig(hull_add=True, border_leak_hull=True)
+    out, p = hull_additions(masks, views, xyz, models, cfg, None, sil)
+    far = leak & ~ndimage.binary_dilation(full[k0], iterations=3)
+    assert far.sum() >= 3 and not out[k0][far].any() and p["border_cut_px"] >= far.sum()
+    assert out[k0][part].all()  # the sphere's side out to the frame stays
+    for v in views[1:]:
+        assert np.array_equal(out[v.key], kept[v.key])
+
+
 @pytest.mark.parametrize("scene", ["aircraft", "tabletop", "bicycle", "toycar", "stool"])
 def test_chroma_sharpness_tells_decoded_jpeg_from_full_colour(scene):
     """Every simulator scene: its renders measure ~1 (colour as sharp as brightness), the

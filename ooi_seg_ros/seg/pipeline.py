@@ -17,7 +17,11 @@ takes the ring pixels whose colour is nearer the object's than the background's
 Before that, each view's mask takes the pixels whose rays meet the visual hull of all views'
 refined masks (voxels that a majority of the views hold) and whose colour that view's
 GrabCut object model explains better than its background model (``refine.hull_additions``):
-thin parts with no SfM point that other views found.
+thin parts with no SfM point that other views found. Before the additions, what GrabCut
+grew past the splatted silhouette leaves a view's mask where few views' masks hold it
+(``hull_cut_grown``) and, where it runs out to an image side the silhouette does not
+reach, where most views' masks miss it (``border_leak_hull``: nothing beyond the image's
+edge stopped the cut there -- the wall above a crown that nears the top of the photo).
 Each stage is a function with a typed input and output and its own config dataclass, so
 stages can be swapped by configuration.
 """
@@ -96,6 +100,7 @@ def preset(method: str) -> dict:
                 "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
                            "edge_alpha": 0.4, "max_side": 400, "hull_add": True,
                            "upsample": 2, "hull_cut_grown": True,
+                           "border_leak_hull": True,
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,
