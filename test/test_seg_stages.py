@@ -991,6 +991,47 @@ def test_border_leak_hull_drops_a_leak_to_the_edge_and_keeps_a_part_that_leaves_
         assert np.array_equal(out[v.key], kept[v.key])
 
 
+def test_hull_thin_agree_adds_a_part_a_minority_of_the_views_found():
+    """``hull_thin_agree``: a stalk that only 3 of 8 views' masks hold (GrabCut lost it in
+    the others) is outside the majority hull, so the default adds it nowhere; with 0.3 the
+    looser hull reaches it and the colour test adds it to the other views (no plane check
+    given here, so no photo-consistency gate). A share at or above ``hull_agree`` is refused."""
+    from ooi_seg_ros.seg.refine import RefineConfig, hull_additions, refine_masks
+    views0 = _ring_views(8)
+    ball = _sphere(1500)
+    t = np.linspace(1.0, 1.7, 200)
+    stalk = np.stack([np.full_like(t, 0.013), np.full_like(t, 0.007), t], 1)
+    radii = np.r_[np.full(len(ball), 0.04), np.full(len(stalk), 0.08)]  # 2-3 px wide
+    whole = point_masks(np.vstack([ball, stalk]), radii, views0, MaskConfig(closing_kernel=1))
+    body = point_masks(ball, np.full(len(ball), 0.04), views0, MaskConfig(closing_kernel=1))
+    views = []
+    for v in views0:
+        img = np.zeros(whole[v.key].shape + (3,), np.uint8)
+        img[...] = (40, 160, 40)
+        img[whole[v.key]] = (200, 30, 30)
+        views.append(View(v.key, v.stamp_ns, v.camera, v.pose, img))
+    masks = {v.key: (whole if i < 3 else body)[v.key].copy() for i, v in enumerate(views)}
+    models = {v.key: (_gmm_model([40, 160, 40], 100.0), _gmm_model([30, 30, 200], 100.0),
+                      np.zeros_like(body[v.key])) for v in views}
+    xyz = np.vstack([ball, stalk])
+    part = {v.key: whole[v.key] & ~ndimage.binary_dilation(body[v.key], iterations=2)
+            for v in views}
+    assert all(part[v.key].sum() >= 5 for v in views)
+    out0, p0 = hull_additions(masks, views, xyz, models, RefineConfig(hull_add=True))
+    assert "thin_voxels" not in p0
+    assert all(out0[v.key][part[v.key]].mean() < 0.2 for v in views[3:])
+    out, p = hull_additions(masks, views, xyz, models,
+                            RefineConfig(hull_add=True, hull_thin_agree=0.3))
+    assert p["thin_voxels"] > 0 and p["thin_added_px"] > 0
+    # most of it (a 3-view hull of a 2-3 px stalk is ragged at 1-px voxels)
+    assert all(out[v.key][part[v.key]].mean() > 0.5 for v in views[3:])
+    for v in views:  # nothing of the background joins
+        assert not (out[v.key] & ~ndimage.binary_dilation(whole[v.key], iterations=2)).any()
+    with pytest.raises(ValueError):
+        refine_masks({}, [], SfmCloud.empty(), SfmCloud.empty(),
+                     RefineConfig(hull_add=True, hull_thin_agree=0.5))
+
+
 @pytest.mark.parametrize("scene", ["aircraft", "tabletop", "bicycle", "toycar", "stool"])
 def test_chroma_sharpness_tells_decoded_jpeg_from_full_colour(scene):
     """Every simulator scene: its renders measure ~1 (colour as sharp as brightness), the

@@ -76,6 +76,12 @@ class RefineConfig:
     # share of the views that frame it hold it (0.5 = a majority of the views)
     hull_voxel_px: float = 1.0  # hull_add: voxel edge in pixels at the object's median depth
     # (the grid follows the images' resolution: one voxel ~ one pixel's footprint)
+    hull_thin_agree: float = 0.0  # hull_add: > 0 also adds pixels the looser hull of the
+    # voxels held by more than this share of the framing views reaches (a leaf or spoke only
+    # some views' GrabCut found), colour-tested as the others and, with the plane check's
+    # neighbours, photo-consistent: two neighbour views repeat the pixel's colour at one depth
+    # inside the looser hull (a background wall behind the object does not). Option, off (0):
+    # BENCHMARKS, Segmentation > Session 30
     hull_cut: bool = False  # hull_add: also drop the mask pixels whose rays miss that hull (a
     # blob only a minority of the views hold); off: it costs the aircraft's thin tips (recall)
     hull_cut_grown: bool = False  # hull_add: drop the mask pixels that GrabCut grew past the
@@ -504,7 +510,8 @@ def gmm_log_likelihood(model: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 def _photo_consistent(photo: PlaneConsistency, i: int, hull_xyz: np.ndarray, vs: float,
-                      ys: np.ndarray, xs: np.ndarray, n_depths: int) -> np.ndarray:
+                      ys: np.ndarray, xs: np.ndarray, n_depths: int,
+                      min_nbrs: int = 1) -> np.ndarray:
     """Bool [k]: pixels (ys, xs) of view ``i`` whose colour some neighbour view repeats at a
     depth inside the hull's interval along their ray (``hull_photo``)."""
     v = photo.views[i]
@@ -531,10 +538,12 @@ def _photo_consistent(photo: PlaneConsistency, i: int, hull_xyz: np.ndarray, vs:
     for k in range(n_depths):
         zk = zmin + (k + 0.5) / n_depths * (zmax - zmin)
         X = v.pose.t + (d * np.where(good, zk, 1.0)[:, None]) @ v.pose.R.T
+        agree = np.zeros(len(ys), np.int32)
         for j in photo.nbrs[i]:
             col, valid = photo.sample(int(j), X, good, (len(ys), 1))
             diff = np.abs(col.reshape(-1, 3) - own).mean(1)
-            out |= valid.ravel() & (diff < tol)
+            agree += valid.ravel() & (diff < tol)
+        out |= agree >= int(min_nbrs)
     return out | ~good
 
 
@@ -647,6 +656,15 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
         return masks, params
     hull = point_masks(grid[keep], np.full(int(keep.sum()), 0.5 * vs),
                        [v for v in views if v.key in models], MaskConfig(closing_kernel=1))
+    thin = {}  # hull_thin_agree: {key: re-projection of the voxels only the looser hull holds}
+    if 0.0 < float(cfg.hull_thin_agree) < float(cfg.hull_agree):
+        extra = (seen > 0) & (inside > float(cfg.hull_thin_agree) * seen) & ~keep
+        params["thin_voxels"] = int(extra.sum())
+        thin_xyz = grid[keep | extra]
+        if extra.any():
+            thin = point_masks(grid[extra], np.full(int(extra.sum()), 0.5 * vs),
+                               [v for v in views if v.key in models],
+                               MaskConfig(closing_kernel=1))
     loose = {}  # hull_cut_grown: {key: the looser hull's re-projection} where it is needed
     if cfg.hull_cut_grown and silhouettes is not None:
         loose = _loose_hull(masks, views, models, silhouettes, hull, grid,
@@ -656,6 +674,7 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
     added = 0
     cut = 0
     border_cut = 0
+    thin_added = 0
     graph_views = 0
     blended = False
     if (cfg.hull_graph == "compressed" and cfg.blend_detect
@@ -687,7 +706,8 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
                 m = m & ~drop
                 out[v.key] = m
                 border_cut += int(drop.sum())
-        cand = hull[v.key] & ~m & ~sure_bg
+        reach = hull[v.key] | thin[v.key] if v.key in thin else hull[v.key]
+        cand = reach & ~m & ~sure_bg
         if not cand.any():
             continue
         col = v.get_image()[cand][:, ::-1].astype(float)  # BGR, as GrabCut saw it
@@ -702,6 +722,13 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
             sel = np.nonzero(obj)[0]
             obj[sel] = _photo_consistent(photo, index[v.key], hull_xyz, vs, ys[sel], xs[sel],
                                          max(1, int(cfg.hull_photo_depths)))
+        if v.key in thin and photo is not None and obj.any():
+            # from the looser hull only what two neighbour views repeat at one depth
+            ys, xs = np.nonzero(cand)
+            sel = np.nonzero(obj & ~hull[v.key][cand])[0]
+            if len(sel):
+                obj[sel] = _photo_consistent(photo, index[v.key], thin_xyz, vs, ys[sel],
+                                             xs[sel], max(1, int(cfg.hull_photo_depths)), 2)
         if obj.any():
             grown = m.copy()
             grown[cand] = obj
@@ -712,11 +739,15 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
                 hit[0] = False
                 grown = hit[lab]
                 obj = grown[cand]
+            if v.key in thin:
+                thin_added += int((grown & ~m & ~hull[v.key]).sum())
             out[v.key] = grown
             added += int(obj.sum())
     params["added_px"] = added
     params["cut_px"] = cut
     params["border_cut_px"] = border_cut
+    if thin:
+        params["thin_added_px"] = thin_added
     params["graph_views"] = graph_views
     return out, params
 
@@ -840,6 +871,9 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     if cfg.hull_add and not (0.0 <= float(cfg.hull_agree) < 1.0 and cfg.hull_voxel_px > 0):
         raise ValueError(f"refine.hull_agree={cfg.hull_agree} (a share in [0, 1)) and "
                          f"refine.hull_voxel_px={cfg.hull_voxel_px} (> 0) for hull_add")
+    if cfg.hull_add and not 0.0 <= float(cfg.hull_thin_agree) < float(cfg.hull_agree):
+        raise ValueError(f"refine.hull_thin_agree={cfg.hull_thin_agree}; 0 (off) or a share "
+                         f"below refine.hull_agree={cfg.hull_agree}")
     if cfg.hull_cut_grown and not 0.0 <= float(cfg.hull_cut_agree) < 1.0:
         raise ValueError(f"refine.hull_cut_agree={cfg.hull_cut_agree}; a share in [0, 1)")
     if cfg.plane_check.behind_window < 0:
