@@ -1030,6 +1030,83 @@ def test_hull_thin_agree_adds_a_part_a_minority_of_the_views_found():
     with pytest.raises(ValueError):
         refine_masks({}, [], SfmCloud.empty(), SfmCloud.empty(),
                      RefineConfig(hull_add=True, hull_thin_agree=0.5))
+    with pytest.raises(ValueError):
+        refine_masks({}, [], SfmCloud.empty(), SfmCloud.empty(),
+                     RefineConfig(hull_add=True, hull_thin_agree=0.3, hull_thin_distinct=5))
+
+
+def _stalk_in_a_room(textured: bool, n=24, size=(160, 120)):
+    """Views on a ring round a red vertical stalk (radius 0.04, z 0.2-1.2) inside a
+    cylindrical wall (radius 8): uniform grey, or a random colour per patch (2 deg x 0.17).
+    Ray-cast, so every view sees one consistent 3D scene. Returns (views, stalk masks)."""
+    w, h = size
+    cam = CameraIntrinsics(w, h, 125.0, 125.0, (w - 1) / 2, (h - 1) / 2)
+    uu, vv = np.meshgrid(np.arange(w), np.arange(h))
+    dc = np.stack([(uu - cam.cx) / cam.fx, (vv - cam.cy) / cam.fy, np.ones_like(uu, float)], -1)
+    views, stalks = [], {}
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        eye = np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 1.5])
+        pose = look_at(eye, np.array([0.0, 0.0, 0.5]))
+        d = dc.reshape(-1, 3) @ pose.R.T
+        # the wall: |eye_xy + s d_xy| = 8
+        qa = (d[:, :2] ** 2).sum(1)
+        qb = 2 * d[:, :2] @ eye[:2]
+        qc = eye[:2] @ eye[:2] - 64.0
+        s = (-qb + np.sqrt(qb ** 2 - 4 * qa * qc)) / (2 * qa)
+        X = eye + s[:, None] * d
+        img = np.full((len(d), 3), 120.0)
+        if textured:
+            cell = (np.floor((np.arctan2(X[:, 1], X[:, 0]) + np.pi) / (2 * np.pi) * 180)
+                    * 64 + np.floor(X[:, 2] * 6) + 16).astype(int)
+            img[:] = np.random.default_rng(7).uniform(0, 255, (180 * 64 + 64, 3))[cell]
+        # the stalk: the ray's closest approach to the z axis
+        t = -(d[:, :2] @ eye[:2]) / qa
+        near = np.linalg.norm(eye[:2] + t[:, None] * d[:, :2], axis=1)
+        z = eye[2] + t * d[:, 2]
+        hit = (near < 0.04) & (z > 0.2) & (z < 1.2) & (t > 0)
+        img[hit] = (200, 30, 30)
+        key = f"v{k}"
+        views.append(View(key, k, cam, pose, img.reshape(h, w, 3).astype(np.uint8)))
+        stalks[key] = hit.reshape(h, w)
+    return views, stalks
+
+
+@pytest.mark.parametrize("textured", [False, True])
+def test_photo_consistent_distinct_refuses_a_wall_that_matches_at_every_depth(textured):
+    """``hull_thin_distinct``: a pixel of the wall whose ray crosses the hull round a stalk
+    matches its neighbours there when the wall is uniform (the plain test adds it) -- but it
+    matches as well at every depth off the hull, so the distinct test refuses it; the
+    stalk's own pixels match only at its depth and pass both tests, on a uniform or a
+    patchy wall."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    from ooi_seg_ros.seg.refine import _photo_consistent
+    views, stalks = _stalk_in_a_room(textured)
+    photo = PlaneConsistency(views, np.array([0.0, 0.0, 1.0, 0.0]), np.array([0.0, 0, 0.5]),
+                             PlaneCheckConfig(neighbours=8, min_deg=2.0, max_deg=35.0))
+    vs = 0.05
+    g = np.arange(-0.3, 0.3 + 1e-9, vs)
+    hull = np.stack(np.meshgrid(g, g, np.arange(0.25, 1.2, vs), indexing="ij"), -1)
+    hull = hull.reshape(-1, 3)  # a fat hull round the stalk (as a loose hull is)
+    for i in (0, 7, 13):
+        v = views[i]
+        uv, _ = project_distorted(hull, v.camera, v.pose)
+        reach = np.zeros_like(stalks[v.key])
+        ui, vi = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+        reach[vi, ui] = True
+        reach = ndimage.binary_closing(reach, iterations=2)
+        wall = reach & ~ndimage.binary_dilation(stalks[v.key], iterations=3)
+        wall = ndimage.binary_erosion(wall, iterations=3)  # inside the hull's reach
+        stalk = ndimage.binary_erosion(stalks[v.key], np.ones((1, 3), bool)) & reach
+        assert wall.sum() > 100 and stalk.sum() > 30
+        for pix, want_plain, want_distinct in ((wall, not textured, False),
+                                               (stalk, True, True)):
+            ys, xs = np.nonzero(pix)
+            plain = _photo_consistent(photo, i, hull, vs, ys, xs, 8, 2)
+            dist = _photo_consistent(photo, i, hull, vs, ys, xs, 8, 2, distinct=4)
+            assert not (dist & ~plain).any()  # the distinct test only refuses
+            assert (plain.mean() > 0.9) if want_plain else (plain.mean() < 0.5)
+            assert (dist.mean() > 0.9) if want_distinct else (dist.mean() < 0.1)
 
 
 @pytest.mark.parametrize("scene", ["aircraft", "tabletop", "bicycle", "toycar", "stool"])

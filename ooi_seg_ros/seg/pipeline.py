@@ -17,8 +17,11 @@ takes the ring pixels whose colour is nearer the object's than the background's
 Before that, each view's mask takes the pixels whose rays meet the visual hull of all views'
 refined masks (voxels that a majority of the views hold) and whose colour that view's
 GrabCut object model explains better than its background model (``refine.hull_additions``):
-thin parts with no SfM point that other views found. Before the additions, what GrabCut
-grew past the splatted silhouette leaves a view's mask where few views' masks hold it
+thin parts with no SfM point that other views found; from the looser hull of the voxels more
+than 30% of the views hold, only the pixels two neighbour views repeat at its depth and refute
+at four depths off it (``hull_thin_agree``, ``hull_thin_distinct``: a spoke or a leaf only some
+views' GrabCut kept, not a uniform wall that matches at any depth). Before the additions, what
+GrabCut grew past the splatted silhouette leaves a view's mask where few views' masks hold it
 (``hull_cut_grown``) and, where it runs out to an image side the silhouette does not
 reach, where most views' masks miss it (``border_leak_hull``: nothing beyond the image's
 edge stopped the cut there -- the wall above a crown that nears the top of the photo).
@@ -100,7 +103,8 @@ def preset(method: str) -> dict:
                 "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
                            "edge_alpha": 0.4, "max_side": 400, "hull_add": True,
                            "upsample": 2, "hull_cut_grown": True,
-                           "border_leak_hull": True,
+                           "border_leak_hull": True, "hull_thin_agree": 0.3,
+                           "hull_thin_distinct": 4,
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,

@@ -80,8 +80,15 @@ class RefineConfig:
     # voxels held by more than this share of the framing views reaches (a leaf or spoke only
     # some views' GrabCut found), colour-tested as the others and, with the plane check's
     # neighbours, photo-consistent: two neighbour views repeat the pixel's colour at one depth
-    # inside the looser hull (a background wall behind the object does not). Option, off (0):
-    # BENCHMARKS, Segmentation > Session 30
+    # inside the looser hull. 0.3 in ``ours`` since session 31, with ``hull_thin_distinct``
+    # 4 (alone it also added the real bonsai's wall and cloth: BENCHMARKS, Segmentation >
+    # Sessions 30 and 31)
+    hull_thin_distinct: int = 0  # hull_thin_agree: > 0: the looser hull's pixel must also be
+    # refuted -- fewer than two of the neighbours that see the point repeat its colour -- at
+    # this many of the 4 depths ``OFF_HULL`` off the looser hull's interval along its ray: a
+    # uniform wall or cloth is consistent at every depth (it says nothing about where the
+    # pixel lies), a spoke or leaf seen against a varied background only at its own. 4 in
+    # ``ours``: 2 still added 9,462 px of the real bonsai's wall, 4 adds 1,959 px
     hull_cut: bool = False  # hull_add: also drop the mask pixels whose rays miss that hull (a
     # blob only a minority of the views hold); off: it costs the aircraft's thin tips (recall)
     hull_cut_grown: bool = False  # hull_add: drop the mask pixels that GrabCut grew past the
@@ -509,42 +516,84 @@ def gmm_log_likelihood(model: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out
 
 
-def _photo_consistent(photo: PlaneConsistency, i: int, hull_xyz: np.ndarray, vs: float,
+def _photo_consistent(photo: PlaneConsistency, i: int, hull_xyz, vs: float,
                       ys: np.ndarray, xs: np.ndarray, n_depths: int,
-                      min_nbrs: int = 1) -> np.ndarray:
-    """Bool [k]: pixels (ys, xs) of view ``i`` whose colour some neighbour view repeats at a
-    depth inside the hull's interval along their ray (``hull_photo``)."""
+                      min_nbrs: int = 1, distinct: int = 0) -> np.ndarray:
+    """Bool [k]: pixels (ys, xs) of view ``i`` whose colour ``min_nbrs`` neighbour views
+    repeat at a depth inside the hull's interval along their ray (``hull_photo``); with
+    ``distinct`` > 0 also refuted (fewer than ``min_nbrs`` of at least ``min_nbrs`` neighbours
+    seeing the point repeat the colour) at ``distinct`` of the depths ``OFF_HULL`` off that
+    interval (a pixel consistent all along its ray is textureless background, not evidence).
+    ``hull_xyz``: the hull's voxel centres [N, 3], or a ``PointSet`` of them (built once when
+    many views are tested)."""
     v = photo.views[i]
     c = v.camera
-    uv, z = project_distorted(hull_xyz, c, v.pose)
-    ui, vi = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
-    ok = (z > 1e-9) & (ui >= 0) & (ui < c.width) & (vi >= 0) & (vi < c.height)
-    zmin = np.full(c.height * c.width, np.inf)
-    zmax = np.full(c.height * c.width, -np.inf)
-    idx = vi[ok] * c.width + ui[ok]
-    np.minimum.at(zmin, idx, z[ok])
-    np.maximum.at(zmax, idx, z[ok])
-    r = int(np.ceil(0.5 * vs * c.fx / max(float(np.median(z[ok])) if ok.any() else 1.0, 1e-9)))
-    size = 2 * max(r, 1) + 1  # voxel centres leave gaps of up to a voxel's footprint
-    zmin = ndimage.grey_erosion(zmin.reshape(c.height, c.width), size=size)[ys, xs]
-    zmax = ndimage.grey_dilation(zmax.reshape(c.height, c.width), size=size)[ys, xs]
-    good = np.isfinite(zmin) & np.isfinite(zmax)
     out = np.zeros(len(ys), bool)
+    if not len(ys):
+        return out
+    cells = hull_xyz if isinstance(hull_xyz, PointSet) else PointSet(
+        hull_xyz, np.ones(len(hull_xyz), bool))
+    u, w, z = cells.project(c, v.pose)
+    with np.errstate(invalid="ignore"):
+        ok = (z > 1e-9) & (u > -0.5) & (u < c.width - 0.5) & (w > -0.5) & (w < c.height - 0.5)
+    zo = z[ok].astype(float)
+    r = int(np.ceil(0.5 * vs * c.fx / max(float(np.median(zo)) if len(zo) else 1.0, 1e-9)))
+    half = max(r, 1)  # voxel centres leave gaps of up to a voxel's footprint
+    # the interval is needed at (ys, xs) only: a box round them that holds their windows
+    y0, y1 = max(int(ys.min()) - half, 0), min(int(ys.max()) + half + 1, c.height)
+    x0, x1 = max(int(xs.min()) - half, 0), min(int(xs.max()) + half + 1, c.width)
+    ui = np.rint(u[ok]).astype(np.int64) - x0
+    vi = np.rint(w[ok]).astype(np.int64) - y0
+    inb = (ui >= 0) & (ui < x1 - x0) & (vi >= 0) & (vi < y1 - y0)
+    bw = x1 - x0
+    zmin = np.full((y1 - y0) * bw, np.inf)
+    zmax = np.full((y1 - y0) * bw, -np.inf)
+    idx = vi[inb] * bw + ui[inb]
+    np.minimum.at(zmin, idx, zo[inb])
+    np.maximum.at(zmax, idx, zo[inb])
+    size = 2 * half + 1
+    zmin = ndimage.grey_erosion(zmin.reshape(y1 - y0, bw), size=size)[ys - y0, xs - x0]
+    zmax = ndimage.grey_dilation(zmax.reshape(y1 - y0, bw), size=size)[ys - y0, xs - x0]
+    good = np.isfinite(zmin) & np.isfinite(zmax)
     if not good.any() or len(photo.nbrs[i]) == 0:
         return ~good | out  # no interval / no neighbour: no evidence against the pixel
     d = photo._rays(i)[ys, xs]  # camera-frame rays, z = 1
     own = photo._image(i)[ys, xs]
     tol = float(photo.cfg.max_diff)
-    for k in range(n_depths):
-        zk = zmin + (k + 0.5) / n_depths * (zmax - zmin)
-        X = v.pose.t + (d * np.where(good, zk, 1.0)[:, None]) @ v.pose.R.T
-        agree = np.zeros(len(ys), np.int32)
+
+    def consistent(sub: np.ndarray, zk: np.ndarray, refuted: bool = False) -> np.ndarray:
+        """The test at depths ``zk`` of the pixels ``sub`` (indices into ys, xs)."""
+        X = v.pose.t + (d[sub] * zk[:, None]) @ v.pose.R.T
+        agree = np.zeros(len(sub), np.int32)
+        seen = np.zeros(len(sub), np.int32)
+        hit = np.ones(len(sub), bool)
         for j in photo.nbrs[i]:
-            col, valid = photo.sample(int(j), X, good, (len(ys), 1))
-            diff = np.abs(col.reshape(-1, 3) - own).mean(1)
+            col, valid = photo.sample(int(j), X, hit, (len(sub), 1))
+            diff = np.abs(col.reshape(-1, 3) - own[sub]).mean(1)
             agree += valid.ravel() & (diff < tol)
-        out |= agree >= int(min_nbrs)
+            seen += valid.ravel()
+        if refuted:  # too few neighbours see the point to refute it: not refuted
+            return (agree < int(min_nbrs)) & (seen >= int(min_nbrs))
+        return agree >= int(min_nbrs)
+
+    for k in range(n_depths):  # a pixel found consistent is not tested again
+        sub = np.flatnonzero(good & ~out)
+        if not len(sub):
+            break
+        out[sub] = consistent(sub, zmin[sub] + (k + 0.5) / n_depths * (zmax[sub] - zmin[sub]))
+    if distinct and out.any():
+        sub = np.flatnonzero(out)  # depths off the interval the neighbours refute
+        refuted = np.zeros(len(sub), np.int32)
+        for near, f in OFF_HULL:
+            refuted += consistent(sub, (zmin[sub] if near else zmax[sub]) * f, True)
+        out[sub] = refuted >= int(distinct)
     return out | ~good
+
+
+# hull_thin_distinct: the depths off the hull's interval along a ray that it tests, as
+# (from the interval's near end, else its far end; factor). Parallax to the neighbours grows
+# with 1/z, so ratios of depth move a point by a similar number of pixels at any scene scale
+OFF_HULL = ((True, 0.8), (False, 1.25), (False, 1.6), (False, 2.0))
 
 
 def _loose_hull(masks: dict, views: list[View], models: dict, silhouettes: dict, hull: dict,
@@ -660,7 +709,7 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
     if 0.0 < float(cfg.hull_thin_agree) < float(cfg.hull_agree):
         extra = (seen > 0) & (inside > float(cfg.hull_thin_agree) * seen) & ~keep
         params["thin_voxels"] = int(extra.sum())
-        thin_xyz = grid[keep | extra]
+        thin_xyz = PointSet(grid[keep | extra], np.ones(int((keep | extra).sum()), bool))
         if extra.any():
             thin = point_masks(grid[extra], np.full(int(extra.sum()), 0.5 * vs),
                                [v for v in views if v.key in models],
@@ -728,7 +777,8 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
             sel = np.nonzero(obj & ~hull[v.key][cand])[0]
             if len(sel):
                 obj[sel] = _photo_consistent(photo, index[v.key], thin_xyz, vs, ys[sel],
-                                             xs[sel], max(1, int(cfg.hull_photo_depths)), 2)
+                                             xs[sel], max(1, int(cfg.hull_photo_depths)), 2,
+                                             int(cfg.hull_thin_distinct))
         if obj.any():
             grown = m.copy()
             grown[cand] = obj
@@ -874,6 +924,9 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     if cfg.hull_add and not 0.0 <= float(cfg.hull_thin_agree) < float(cfg.hull_agree):
         raise ValueError(f"refine.hull_thin_agree={cfg.hull_thin_agree}; 0 (off) or a share "
                          f"below refine.hull_agree={cfg.hull_agree}")
+    if not 0 <= int(cfg.hull_thin_distinct) <= len(OFF_HULL):
+        raise ValueError(f"refine.hull_thin_distinct={cfg.hull_thin_distinct}; 0 (off) to "
+                         f"{len(OFF_HULL)} (the depths off the hull it tests)")
     if cfg.hull_cut_grown and not 0.0 <= float(cfg.hull_cut_agree) < 1.0:
         raise ValueError(f"refine.hull_cut_agree={cfg.hull_cut_agree}; a share in [0, 1)")
     if cfg.plane_check.behind_window < 0:
