@@ -81,6 +81,21 @@ class ParamSpec:
     read_only: bool = False
 
 
+# the ROS parameters of a node that keeps keyframes in a ``KeyframeAssembler``
+KEYFRAME_STORE_SPECS = {
+    "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
+                                 read_only=True),
+    "image_downscale": ParamSpec("integer downscale of kept images (0 = auto)", 0, 64,
+                                 read_only=True),
+    "image_max_pixels": ParamSpec("pixel count kept images are reduced to (auto)", 10_000,
+                                  100_000_000, read_only=True),
+    "evict_policy": ParamSpec("keyframe evicted over budget", choices=("redundant", "oldest"),
+                              read_only=True),
+    "qos_depth": ParamSpec("history depth of the keyframe subscriptions", 1, 1000,
+                           read_only=True),
+}
+
+
 def _field_doc(cls: type) -> dict[str, str]:
     """Per-field documentation: the dataclass field's ``metadata['doc']`` if present."""
     return {f.name: f.metadata.get("doc", "") for f in dataclasses.fields(cls)}
@@ -431,6 +446,20 @@ class KeyframeAssembler:
     """
 
     PARTS = ("image", "info", "pose")
+
+    @classmethod
+    def from_config(cls, diag: Diagnostics, cfg, warn: Optional[Callable[[str, str], None]],
+                    on_evict: Optional[Callable[[int], None]] = None) -> "KeyframeAssembler":
+        """The store a node's config asks for (``max_keyframes`` and ``KEYFRAME_STORE_SPECS``'
+        fields; ``image_budget_mb`` 0 = ``auto_image_budget_bytes``), the budget used recorded
+        in ``diag``."""
+        budget = (int(cfg.image_budget_mb * 2 ** 20) if cfg.image_budget_mb > 0
+                  else auto_image_budget_bytes())
+        out = cls(diag, cfg.max_keyframes, max_bytes=budget, downscale=cfg.image_downscale,
+                  max_pixels=cfg.image_max_pixels, evict_policy=cfg.evict_policy, warn=warn,
+                  on_evict=on_evict)
+        diag.set("image_budget_mb", f"{budget / 2 ** 20:.0f}")
+        return out
 
     def __init__(self, diag: Diagnostics, max_keyframes: int, max_pending: int = 100,
                  on_evict: Optional[Callable[[int], None]] = None, max_bytes: int = 0,

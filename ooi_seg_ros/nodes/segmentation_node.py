@@ -77,8 +77,8 @@ from ..seg.masks import render_masks
 from ..core.worker import WorkerDied, usable_cores
 from ..seg.pipeline import SegmentationConfig, make_config, segment
 from ..seg.worker import SegmentationWorker
-from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle,
-                     auto_image_budget_bytes, downscale_camera, guarded, latched_qos,
+from .common import (KEYFRAME_STORE_SPECS, ConfigParams, Diagnostics, KeyframeAssembler,
+                     ParamSpec, Throttle, downscale_camera, guarded, latched_qos,
                      mask_frame_id, reliable_qos, run_node, upscale_mask)
 
 
@@ -212,16 +212,7 @@ SPECS = {
     "change_tolerance": ParamSpec("outline shift not counted as change (share of the long "
                                   "side)", 0.0, 0.5),
     "change_check_side": ParamSpec("long side of the coarse silhouettes compared", 16, 4096),
-    "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
-                                 read_only=True),
-    "image_downscale": ParamSpec("integer downscale of kept images (0 = auto)", 0, 64,
-                                 read_only=True),
-    "image_max_pixels": ParamSpec("pixel count kept images are reduced to (auto)", 10_000,
-                                  100_000_000, read_only=True),
-    "evict_policy": ParamSpec("keyframe evicted over budget", choices=("redundant", "oldest"),
-                              read_only=True),
-    "qos_depth": ParamSpec("history depth of the keyframe subscriptions", 1, 1000,
-                           read_only=True),
+    **KEYFRAME_STORE_SPECS,
     "mask_qos_depth": ParamSpec("history depth of the mask publisher", 1, 10000,
                                 read_only=True),
     "segment_worker": ParamSpec("full runs in a worker process (-1 = auto, 0 = none)", -1, 1,
@@ -310,13 +301,7 @@ class SegmentationNode(Node):
         self._lock = threading.Lock()
         self._obs_arrived = threading.Condition(self._lock)  # on_obs -> a run waiting for it
         self._cloud_pub_lock = threading.Lock()  # ooi/points: newest-wins check + publish
-        budget = (int(self.cfg.image_budget_mb * 2 ** 20) if self.cfg.image_budget_mb > 0
-                  else auto_image_budget_bytes())
-        self.assembler = KeyframeAssembler(
-            self.diag, self.cfg.max_keyframes, max_bytes=budget,
-            downscale=self.cfg.image_downscale, max_pixels=self.cfg.image_max_pixels,
-            evict_policy=self.cfg.evict_policy, warn=self.throttle.warn)
-        self.diag.set("image_budget_mb", f"{budget / 2 ** 20:.0f}")
+        self.assembler = KeyframeAssembler.from_config(self.diag, self.cfg, self.throttle.warn)
         self.keyframes = self.assembler.keyframes  # {stamp_ns: View}, capture order
         self._points_msg: Optional[PointCloud2] = None
         self._obs_msg: Optional[PointCloud2] = None

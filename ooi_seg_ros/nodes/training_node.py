@@ -49,8 +49,8 @@ from ..bag import BagWriter
 from ..core.types import Capture
 from ..train.gaussians import PLY_FIELDS, to_ply_array
 from ..train.trainer import TrainConfig, train
-from .common import (ConfigParams, Diagnostics, KeyframeAssembler, ParamSpec, Throttle,
-                     auto_image_budget_bytes, guarded, latched_qos, mask_is_provisional,
+from .common import (KEYFRAME_STORE_SPECS, ConfigParams, Diagnostics, KeyframeAssembler,
+                     ParamSpec, Throttle, guarded, latched_qos, mask_is_provisional,
                      reliable_qos, run_node)
 
 SPLAT_SKIP_FIELDS = ("nx", "ny", "nz")  # the PLY's unused normals are not published
@@ -98,16 +98,7 @@ SPECS = {
     "min_keyframes": ParamSpec("keyframes with masks needed to start", 2, 100000),
     "record_path": ParamSpec("MCAP bag recording inputs and outputs", read_only=True),
     "max_keyframes": ParamSpec("keyframes kept in memory", 2, 1000000, read_only=True),
-    "image_budget_mb": ParamSpec("MiB of kept keyframe images (0 = auto)", 0.0, 1e6,
-                                 read_only=True),
-    "image_downscale": ParamSpec("integer downscale of kept images (0 = auto)", 0, 64,
-                                 read_only=True),
-    "image_max_pixels": ParamSpec("pixel count kept images are reduced to (auto)", 10_000,
-                                  100_000_000, read_only=True),
-    "evict_policy": ParamSpec("keyframe evicted over budget", choices=("redundant", "oldest"),
-                              read_only=True),
-    "qos_depth": ParamSpec("history depth of the keyframe subscriptions", 1, 1000,
-                           read_only=True),
+    **KEYFRAME_STORE_SPECS,
     "frame_id": ParamSpec("world frame of outputs", read_only=True),
 }
 
@@ -144,14 +135,8 @@ class TrainingNode(Node):
         self._lock = threading.Lock()
         self.masks: dict[int, tuple] = {}  # stamp -> (packed bits, (H, W)) of a final mask
         self.provisional: set[int] = set()  # stamps whose latest mask is provisional (no bits)
-        budget = (int(self.cfg.image_budget_mb * 2 ** 20) if self.cfg.image_budget_mb > 0
-                  else auto_image_budget_bytes())
-        self.assembler = KeyframeAssembler(
-            self.diag, self.cfg.max_keyframes, max_bytes=budget,
-            downscale=self.cfg.image_downscale, max_pixels=self.cfg.image_max_pixels,
-            evict_policy=self.cfg.evict_policy, warn=self.throttle.warn,
-            on_evict=self._on_evict)
-        self.diag.set("image_budget_mb", f"{budget / 2 ** 20:.0f}")
+        self.assembler = KeyframeAssembler.from_config(self.diag, self.cfg, self.throttle.warn,
+                                                       self._on_evict)
         self.keyframes = self.assembler.keyframes  # {stamp_ns: View}, capture order
         # (xyz, rgb) of the latest OOI cloud, swapped as one: the training thread reads the
         # pair while the executor may store the next cloud
