@@ -1035,9 +1035,10 @@ def test_hull_thin_agree_adds_a_part_a_minority_of_the_views_found():
                      RefineConfig(hull_add=True, hull_thin_agree=0.3, hull_thin_distinct=5))
 
 
-def _stalk_in_a_room(textured: bool, n=24, size=(160, 120)):
+def _stalk_in_a_room(textured: bool, n=24, size=(160, 120), coarse=1):
     """Views on a ring round a red vertical stalk (radius 0.04, z 0.2-1.2) inside a
-    cylindrical wall (radius 8): uniform grey, or a random colour per patch (2 deg x 0.17).
+    cylindrical wall (radius 8): uniform grey, or a random colour per patch (2 deg x 0.17,
+    ``coarse`` times that).
     Ray-cast, so every view sees one consistent 3D scene. Returns (views, stalk masks)."""
     w, h = size
     cam = CameraIntrinsics(w, h, 125.0, 125.0, (w - 1) / 2, (h - 1) / 2)
@@ -1057,8 +1058,8 @@ def _stalk_in_a_room(textured: bool, n=24, size=(160, 120)):
         X = eye + s[:, None] * d
         img = np.full((len(d), 3), 120.0)
         if textured:
-            cell = (np.floor((np.arctan2(X[:, 1], X[:, 0]) + np.pi) / (2 * np.pi) * 180)
-                    * 64 + np.floor(X[:, 2] * 6) + 16).astype(int)
+            cell = (np.floor((np.arctan2(X[:, 1], X[:, 0]) + np.pi) / (2 * np.pi) * 180
+                             / coarse) * 64 + np.floor(X[:, 2] * 6 / coarse) + 16).astype(int)
             img[:] = np.random.default_rng(7).uniform(0, 255, (180 * 64 + 64, 3))[cell]
         # the stalk: the ray's closest approach to the z axis
         t = -(d[:, :2] @ eye[:2]) / qa
@@ -1107,6 +1108,42 @@ def test_photo_consistent_distinct_refuses_a_wall_that_matches_at_every_depth(te
             assert not (dist & ~plain).any()  # the distinct test only refuses
             assert (plain.mean() > 0.9) if want_plain else (plain.mean() < 0.5)
             assert (dist.mean() > 0.9) if want_distinct else (dist.mean() < 0.1)
+
+
+@pytest.mark.parametrize("textured", [False, True])
+def test_photo_behind_places_a_patchy_wall_past_the_hull(textured):
+    """``behind_cut``: a pixel of a patchy wall seen through the hull round a stalk has its
+    colour repeated by more neighbours at a depth past the hull than at any inside it, so the
+    vote places it behind the object; a uniform wall repeats at every depth (no verdict) and
+    the stalk's own pixels repeat best at the stalk's depth -- neither is placed behind."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    from ooi_seg_ros.seg.refine import RefineConfig, _photo_behind, refine_masks
+    views, stalks = _stalk_in_a_room(textured, n=60, coarse=3)
+    photo = PlaneConsistency(views, np.array([0.0, 0.0, 1.0, 0.0]), np.array([0.0, 0, 0.5]),
+                             PlaneCheckConfig(neighbours=8, min_deg=2.0, max_deg=35.0))
+    cfg = RefineConfig()
+    vs = 0.05
+    g = np.arange(-0.3, 0.3 + 1e-9, vs)
+    hull = np.stack(np.meshgrid(g, g, np.arange(0.25, 1.2, vs), indexing="ij"), -1)
+    hull = hull.reshape(-1, 3)
+    for i in (0, 7, 13):
+        v = views[i]
+        uv, _ = project_distorted(hull, v.camera, v.pose)
+        reach = np.zeros_like(stalks[v.key])
+        reach[np.rint(uv[:, 1]).astype(int), np.rint(uv[:, 0]).astype(int)] = True
+        reach = ndimage.binary_closing(reach, iterations=2)
+        wall = reach & ~ndimage.binary_dilation(stalks[v.key], iterations=3)
+        wall = ndimage.binary_erosion(wall, iterations=3)
+        stalk = ndimage.binary_erosion(stalks[v.key], np.ones((1, 3), bool)) & reach
+        for pix, want in ((wall, textured), (stalk, False)):
+            ys, xs = np.nonzero(pix)
+            far = _photo_behind(photo, i, hull, vs, ys, xs, cfg.behind_margin,
+                                cfg.behind_max_in, cfg.behind_step_px)
+            assert (far.mean() > 0.6) if want else (far.mean() < 0.05), (i, far.mean())
+    for bad in ({"behind_cut": "all"}, {"behind_cut": "mask", "behind_margin": 0},
+                {"behind_cut": "grown", "behind_max_in": -1}):
+        with pytest.raises(ValueError):
+            refine_masks({}, [], SfmCloud.empty(), SfmCloud.empty(), RefineConfig(**bad))
 
 
 @pytest.mark.parametrize("scene", ["aircraft", "tabletop", "bicycle", "toycar", "stool"])

@@ -25,6 +25,11 @@ GrabCut grew past the splatted silhouette leaves a view's mask where few views' 
 (``hull_cut_grown``) and, where it runs out to an image side the silhouette does not
 reach, where most views' masks miss it (``border_leak_hull``: nothing beyond the image's
 edge stopped the cut there -- the wall above a crown that nears the top of the photo).
+After the additions, a pixel the neighbour views place past the object leaves the mask
+(``behind_cut``: more of them repeat its colour at some depth beyond the looser hull than at
+any depth inside it -- a chair or shelf seen between the leaves, kept by GrabCut for its
+colour; ``behind_open``: only where a 2x2 square fits, not the lone pixels and 1-px streaks a
+striped surface aliases into).
 Each stage is a function with a typed input and output and its own config dataclass, so
 stages can be swapped by configuration.
 """
@@ -104,7 +109,8 @@ def preset(method: str) -> dict:
                            "edge_alpha": 0.4, "max_side": 400, "hull_add": True,
                            "upsample": 2, "hull_cut_grown": True,
                            "border_leak_hull": True, "hull_thin_agree": 0.3,
-                           "hull_thin_distinct": 4,
+                           "hull_thin_distinct": 4, "behind_cut": "mask",
+                           "behind_open": True,
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,
