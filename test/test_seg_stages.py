@@ -491,6 +491,32 @@ def test_plane_check_samples_in_float32_where_float64_would(dist):
     assert np.abs(col - col64)[ok].mean() < 0.5  # on 0-255: remap's 1/32-px grid at most
 
 
+def test_plane_check_samples_a_column_longer_than_remap_takes():
+    """Every mask pixel of a large image tested at once (``behind_cut`` on a 1280x720 keyframe:
+    100k+ pixels as one column) exceeds cv2.remap's 32767 rows; ``sample`` gives the same
+    colours and validity as for the same points laid out in a block (the 30 Hz node bench
+    failed its runs with an OpenCV assertion before)."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    rng = np.random.default_rng(5)
+    cam = CameraIntrinsics(320, 240, 280.0, 280.0, 159.5, 119.5)
+    poses = [look_at(np.array([4.0 * np.cos(a), 4.0 * np.sin(a), 2.0]), np.zeros(3),
+                     np.array([0, 0, 1.0])) for a in (0.0, 0.4)]
+    img = (rng.random((240, 320, 3)) * 255).astype(np.uint8)
+    views = [View(key=str(k), stamp_ns=k, camera=cam, pose=pq, image=img)
+             for k, pq in enumerate(poses)]
+    n = 200 * 250  # > 32767
+    X = rng.normal(0.0, 0.8, (n, 3))
+    hit = rng.random(n) > 0.1
+    pc = PlaneConsistency(views, np.array([0.0, 0.0, 1.0, 0.0]), np.zeros(3),
+                          PlaneCheckConfig(enabled=True))
+    col, ok = pc.sample(1, X, hit, (n, 1))
+    colb, okb = pc.sample(1, X, hit, (200, 250))
+    assert col.shape == (n, 1, 3) and ok.shape == (n, 1)
+    assert ok.sum() > 0.5 * n
+    assert np.array_equal(ok.ravel(), okb.ravel())
+    np.testing.assert_array_equal(col.reshape(-1, 3), colb.reshape(-1, 3))
+
+
 def test_background_planes_find_the_wall_not_the_object():
     """A wall behind the object is returned; the support plane (touching the object) and no
     plane through the object are."""

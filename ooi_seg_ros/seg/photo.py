@@ -56,6 +56,11 @@ from ..core.geometry import finite_rows
 from ..core.types import View
 from .masks import project_distorted, undistorted_dirs
 
+# cv2.remap's maps must have fewer rows and columns than SHRT_MAX (32767); longer lists of
+# points are sampled as rows of REMAP_ROW
+REMAP_MAX = 32767
+REMAP_ROW = 4096
+
 
 @dataclass
 class PlaneCheckConfig:
@@ -323,9 +328,23 @@ class PlaneConsistency:
             ok &= (v >= 0) & (v <= cj.height - 1)
         u[~ok] = -1.0
         v[~ok] = -1.0
-        col = cv2.remap(self._image(j), u.reshape(shape), v.reshape(shape), cv2.INTER_LINEAR,
+        h, w = shape
+        if max(h, w) < REMAP_MAX:
+            col = cv2.remap(self._image(j), u.reshape(shape), v.reshape(shape),
+                            cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            return col, ok.reshape(shape)
+        # cv2.remap takes maps of fewer than 32767 rows and columns: a long list of points
+        # (every mask pixel of a large image, as one column) is sampled in rows of REMAP_ROW
+        n = len(u)
+        rows = -(-n // REMAP_ROW)
+        pad = rows * REMAP_ROW - n
+        um = np.concatenate([u, np.full(pad, -1.0, u.dtype)]).reshape(rows, REMAP_ROW)
+        vm = np.concatenate([v, np.full(pad, -1.0, v.dtype)]).reshape(rows, REMAP_ROW)
+        col = cv2.remap(self._image(j), um, vm, cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return col, ok.reshape(shape)
+        rest = col.shape[2:]
+        col = col.reshape(rows * REMAP_ROW, *rest)[:n]
+        return col.reshape(*shape, *rest), ok.reshape(shape)
 
     def behind_points(self, i: int, box: tuple[int, int, int, int], shape: tuple[int, int]
                       ) -> tuple[np.ndarray, np.ndarray]:
