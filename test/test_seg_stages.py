@@ -1166,6 +1166,14 @@ def test_photo_behind_places_a_patchy_wall_past_the_hull(textured):
             far = _photo_behind(photo, i, hull, vs, ys, xs, cfg.behind_margin,
                                 cfg.behind_max_in, cfg.behind_step_px)
             assert (far.mean() > 0.6) if want else (far.mean() < 0.05), (i, far.mean())
+    # a mask of more pixels than cv2.remap's 32767 rows (a large keyframe): the same verdicts
+    ys, xs = np.nonzero(wall)
+    k = 32768 // len(ys) + 1
+    far = _photo_behind(photo, 13, hull, vs, ys, xs, cfg.behind_margin, cfg.behind_max_in,
+                        cfg.behind_step_px)
+    many = _photo_behind(photo, 13, hull, vs, np.tile(ys, k), np.tile(xs, k),
+                         cfg.behind_margin, cfg.behind_max_in, cfg.behind_step_px)
+    assert np.array_equal(many, np.tile(far, k))
     for bad in ({"behind_cut": "all"}, {"behind_cut": "mask", "behind_margin": 0},
                 {"behind_cut": "grown", "behind_max_in": -1}):
         with pytest.raises(ValueError):
