@@ -279,3 +279,31 @@ def test_grabcut_iterations_split_between_the_crop_and_the_enlarged_crop():
         assert part.metrics["mean"]["iou"] > full.metrics["mean"]["iou"] - 0.05, k
     with pytest.raises(ValueError, match="enlarged_iterations"):
         segment(sim.capture, cloud, make_config("ours", {"refine": {"enlarged_iterations": -2}}))
+
+
+def test_a_capture_too_large_for_memory_is_refused_with_the_downscale_that_fits():
+    """289 photos of 4000x3000 (a drone's full-size stills) need ~40 GiB in the
+    segmentation (12.3 B per pixel of every view, measured on the bonsai): with 20 GiB
+    available the run is refused before it starts, naming the ``--downscale`` that fits
+    (already-downscaled input: the factor multiplies); the bonsai's 800x533 views and a
+    capture that fits pass. (``ooi-seg segment`` and ``ooi-seg run`` call it on the capture
+    they read, before the SfM and the segmentation.)"""
+    from ooi_seg_ros.core.types import CameraIntrinsics, View
+    from ooi_seg_ros.seg.pipeline import check_memory, estimate_memory_bytes
+
+    def capture(w, h, n=289):
+        cam = CameraIntrinsics(w, h, 0.8 * w, 0.8 * w, w / 2, h / 2)
+        return Capture([View(key=str(k), stamp_ns=k, camera=cam, pose=None)
+                        for k in range(n)])
+
+    big = capture(4000, 3000)
+    assert 38 * 2 ** 30 < estimate_memory_bytes(big) < 42 * 2 ** 30
+    with pytest.raises(InputError, match=r"4000x3000 needs about .* --downscale 2 "):
+        check_memory(big, available=20 * 2 ** 30)
+    with pytest.raises(InputError, match=r"--downscale 4 "):
+        check_memory(big, available=20 * 2 ** 30, downscale=2.0)
+    with pytest.raises(InputError, match=r"--downscale 3 "):
+        check_memory(big, available=8 * 2 ** 30)
+    check_memory(big, available=64 * 2 ** 30)
+    check_memory(capture(800, 533), available=4 * 2 ** 30)
+    check_memory(Capture([]), available=0)

@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from . import main as cli_main
     from ..capture_io import input_kind, read_capture_and_cloud
-    from ..seg.pipeline import make_config, segment
+    from ..seg.pipeline import check_memory, make_config, segment
     from ..seg.report import write_outputs
     from ..sfm.export import write_colmap_model, write_ply
     from ..sfm.pipeline import SfmConfig, reconstruct
@@ -52,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"[1/3] reading {src} ...", flush=True)
     kind = input_kind(str(src))
     capture, cloud = read_capture_and_cloud(str(src), downscale=args.downscale)
+    check_memory(capture, downscale=args.downscale)  # before the SfM and the run
     summary["views"] = len(capture.views)
     dropped = capture.meta.get("dropped")
     if dropped:

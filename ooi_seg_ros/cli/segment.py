@@ -56,7 +56,9 @@ def _colmap_dirs(path: Path, images: str | None) -> tuple[Path, Path] | None:
 
 
 def load_input(args) -> tuple:
-    """(capture, cloud, input_info) for INPUT (see module doc)."""
+    """(capture, cloud, input_info) for INPUT (see module doc). A capture too large for the
+    memory available is refused here, with the ``--downscale`` that fits."""
+    from ..seg.pipeline import check_memory
     src = str(args.input)
     info = {"input": src, "method": args.method, "config": args.config, "seed": args.seed,
             "downscale": args.downscale}
@@ -81,6 +83,7 @@ def load_input(args) -> tuple:
     if dirs is not None:
         from ..sfm.colmap_io import load_colmap_model
         cap, cloud = load_colmap_model(dirs[0], dirs[1], args.downscale)
+        check_memory(cap, downscale=args.downscale)  # before the run, not killed part way
         info.update({"kind": "colmap", "sparse": str(dirs[0].resolve()),
                      "images": str(dirs[1].resolve())})
         return cap, cloud, info
@@ -92,6 +95,7 @@ def load_input(args) -> tuple:
     # the same downscale as `train` applies when it reloads this input from input.json (it
     # was not passed here once: masks at full size, training images at 1/downscale)
     cap, cloud = read_capture_and_cloud(path, downscale=args.downscale)
+    check_memory(cap, downscale=args.downscale)
     info["kind"] = "capture"
     dropped = {k: n for k, n in (cap.meta.get("dropped") or {}).items() if n}
     if dropped:  # counted and logged by the reader; said again where the user looks

@@ -432,6 +432,45 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
                               metrics, stage_clouds)
 
 
+# the segmentation's peak memory, measured (``/usr/bin/time -v ooi-seg segment`` on the real
+# bonsai's 289 views, BENCHMARKS, Segmentation > Session 34): 1.43 GiB at 400x266 and 2.49 GiB
+# at 800x533 -- about 1.15 GB of libraries and cloud, and 12.3 bytes per pixel of every view
+# (the images stay loaded; masks, GrabCut and plane-check buffers)
+SEG_MEMORY_PER_PIXEL = 12.3
+
+
+def estimate_memory_bytes(capture: Capture) -> int:
+    """About how many bytes ``segment`` adds to what a process holds once its libraries are
+    loaded, for ``capture``: ``SEG_MEMORY_PER_PIXEL`` per pixel of every view."""
+    px = sum(int(v.camera.width) * int(v.camera.height) for v in capture.views)
+    return int(SEG_MEMORY_PER_PIXEL * px)
+
+
+def check_memory(capture: Capture, available: Optional[int] = None,
+                 downscale: float = 1.0) -> None:
+    """Raise ``InputError`` before a run that clearly cannot fit in memory (the system would
+    kill it part way): how much it needs, how much there is, and the ``--downscale`` that
+    fits. ``available``: bytes (default: what the machine has available now);
+    ``downscale``: the factor the images were already read at (the advice multiplies it).
+    The libraries' own share is left out of the estimate, so a run is never refused that
+    might fit."""
+    if available is None:
+        from ..core.resources import available_memory
+        available = available_memory()
+    need = estimate_memory_bytes(capture)
+    if need <= available or not capture.views:
+        return
+    f = 2
+    while need / f ** 2 > available and f < 64:
+        f += 1
+    sizes = sorted({(v.camera.width, v.camera.height) for v in capture.views})
+    size = "x".join(map(str, sizes[-1])) + (" and smaller" if len(sizes) > 1 else "")
+    raise InputError(f"segmenting {len(capture.views)} views of {size} needs about "
+                     f"{need / 2 ** 30:.1f} GiB of memory and {available / 2 ** 30:.1f} GiB "
+                     f"is available; read the images smaller: --downscale {f * downscale:g} "
+                     f"(about {need / f ** 2 / 2 ** 30:.1f} GiB)")
+
+
 def cloud_change(prev_xyz: np.ndarray, new_xyz: np.ndarray,
                  tol: Optional[float] = None) -> dict:
     """How much an OOI cloud changed between two segmentations (e.g. whether a live node

@@ -10,7 +10,6 @@ first) is held out and never trained on.
 from __future__ import annotations
 
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -19,6 +18,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
+from ..core.resources import available_memory
 from ..core.types import CameraIntrinsics, Capture, InputError
 from . import mcmc
 from .gaussians import GaussianModel, MAX_SH_DEGREE, init_from_points
@@ -402,17 +402,6 @@ def estimate_memory_bytes(max_gaussians: int, width: int, height: int) -> int:
     return max_gaussians * per_gauss + raster + 200 * 2 ** 20
 
 
-def _available_memory() -> int:
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-
-
 class _Progress:
     """A one-line progress bar on stderr (iterations, loss, PSNR, Gaussians, it/s)."""
 
@@ -481,7 +470,7 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
     train_frames, held_frames = _prepare(capture, masks, cfg, result)
     w = max(f.cam.width for f in train_frames)
     h = max(f.cam.height for f in train_frames)
-    need, have = estimate_memory_bytes(cfg.max_gaussians, w, h), _available_memory()
+    need, have = estimate_memory_bytes(cfg.max_gaussians, w, h), available_memory()
     if need > cfg.max_memory_fraction * have:
         raise InputError(f"max_gaussians={cfg.max_gaussians} at {w}x{h} needs about "
                          f"{need / 2**30:.1f} GiB, only {have / 2**30:.1f} GiB available; "
