@@ -214,6 +214,43 @@ def _jpeg(cap: Capture, quality: int) -> Capture:
     return dataclasses.replace(cap, views=views)
 
 
+def _at_scale(cap: Capture, cloud: SfmCloud, f: int) -> tuple[Capture, SfmCloud]:
+    """``cap`` and ``cloud`` as a reader gives them at ``--downscale f``: images averaged
+    down (box), intrinsics scaled, ground truth averaged and kept >= 0.5, the cloud's
+    observations scaled (ROS pixel centres)."""
+    from ooi_seg_ros.capture_io import _resize_mask, _resize_rgb
+    s = 1.0 / f
+    views = []
+    for v in cap.views:
+        cam = v.camera.scaled(s)
+        size = (cam.width, cam.height)
+        views.append(View(v.key, v.stamp_ns, cam, v.pose, _resize_rgb(v.get_image(), size),
+                          _resize_mask(v.gt_mask, size) if v.gt_mask is not None else None,
+                          compressed=v.compressed))
+    idx = {v.key: i for i, v in enumerate(cap.views)}
+    xy = ((cloud.obs_xy.astype(np.float64) + 0.5) * s - 0.5).astype(np.float32)
+    return Capture(views), SfmCloud(cloud.xyz, cloud.rgb, cloud.error, cloud.obs_ptr,
+                                    cloud.obs_view, xy, [views[idx[v.key]] for v in cloud.views])
+
+
+def _enlarged_rows(r, cap: Capture, name: str, f: int) -> list[tuple[str, dict, float]]:
+    """(variant name, mean metrics, worst IoU) of ``r``'s working-size masks enlarged to
+    ``cap``'s size against its ground truth: bilinear, and placed by the photo (the CLI's)."""
+    from ooi_seg_ros.seg.masks import mask_at_size
+    from ooi_seg_ros.seg.metrics import scene_metrics
+    views = {v.key: v for v in cap.views}
+    gt = {k: views[k].gt_mask for k in r.masks}
+    out = []
+    for tag, guided in (("bl", False), ("g", True)):
+        pred = {k: mask_at_size(m, (views[k].camera.width, views[k].camera.height),
+                                guide=views[k].get_image() if guided else None)
+                for k, m in r.masks.items()}
+        sm = scene_metrics(pred, gt)
+        out.append((f"{name}/{f}{tag}", sm["mean"],
+                    min(pv["iou"] for pv in sm["per_view"].values())))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -245,6 +282,10 @@ def main() -> None:
     ap.add_argument("--sim-set", type=json.loads, default=None, metavar="JSON",
                     help='SimConfig options of the captures, e.g. \'{"shade_subsamples": true}\''
                          " (cached apart)")
+    ap.add_argument("--work-downscale", type=int, default=0, metavar="F",
+                    help="also segment every case at 1/F of its size (as `ooi-seg segment "
+                         "--downscale F` reads it) and score the masks enlarged back to the "
+                         "capture's size: NAME/Fbl bilinear, NAME/Fg placed by the photo")
     args = ap.parse_args()
     w, h = (int(x) for x in args.size.split("x"))
     variants = {n: VARIANTS[n] for n in args.variants}
@@ -285,10 +326,22 @@ def main() -> None:
                 print(f"{scene:>9} {seed:>4} {name:>17} {m['iou']:6.3f} {m['precision']:6.3f} "
                       f"{m['recall']:6.3f} {m['dice']:6.3f} {worst:6.3f} {n:7d} {dt:6.1f}",
                       flush=True)
+                if args.work_downscale > 1:
+                    t0 = time.perf_counter()
+                    scap, scloud = _at_scale(cap, cloud, args.work_downscale)
+                    r = segment(scap, scloud, make_config(method, dict(ov, seed=seed)),
+                                mask_keys=keys)
+                    dt = time.perf_counter() - t0
+                    for vname, m, worst in _enlarged_rows(r, cap, name, args.work_downscale):
+                        rows.append((scene, seed, vname, m))
+                        print(f"{scene:>9} {seed:>4} {vname:>17} {m['iou']:6.3f} "
+                              f"{m['precision']:6.3f} {m['recall']:6.3f} {m['dice']:6.3f} "
+                              f"{worst:6.3f} {len(r.ooi_cloud):7d} {dt:6.1f}", flush=True)
     print("\nper-scene means over seeds (IoU / precision / recall / Dice)")
     print(f"{'variant':>17} " + " ".join(f"{s:>27}" for s in args.scenes)
           + f" {'mean IoU':>9} {'mean rec':>9}")
-    for name in variants:
+    names = list(dict.fromkeys(r[2] for r in rows))
+    for name in names:
         cells, ious, recs = [], [], []
         for scene in args.scenes:
             ms = [r[3] for r in rows if r[0] == scene and r[2] == name]

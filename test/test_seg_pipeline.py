@@ -307,3 +307,43 @@ def test_a_capture_too_large_for_memory_is_refused_with_the_downscale_that_fits(
     check_memory(big, available=64 * 2 ** 30)
     check_memory(capture(800, 533), available=4 * 2 ** 30)
     check_memory(Capture([]), available=0)
+
+
+def test_working_size_is_picked_from_pixels_and_memory_and_masks_go_back_to_the_photo():
+    """With no --downscale, `segment` works at the smallest integer factor that brings every
+    view to --max-pixels and the run into memory, and writes masks back at the photo's size
+    with a smooth outline (not nearest-neighbour blocks)."""
+    import argparse
+    from ooi_seg_ros.cli.segment import parse_downscale
+    from ooi_seg_ros.seg.masks import mask_at_size
+    from ooi_seg_ros.seg.pipeline import working_downscale
+    plenty = 2 ** 40
+    assert working_downscale([(800, 533)] * 289, 1_000_000, plenty) == 1
+    assert working_downscale([(4000, 3000)] * 10, 1_000_000, plenty) == 4  # 1000x750
+    assert working_downscale([(4000, 3000), (800, 600)], 1_000_000, plenty) == 4
+    assert working_downscale([(4000, 3000)] * 10, 0, plenty) == 1  # no pixel limit
+    # memory: 289 views of 4000x3000 in 20 GiB need 2 (as check_memory advises)
+    assert working_downscale([(4000, 3000)] * 289, 0, 20 * 2 ** 30) == 2
+    assert working_downscale([(64, 48)], 100, plenty) == 3  # short side kept >= 16 px
+    assert parse_downscale("auto") is None and parse_downscale("2") == 2.0
+    for bad in ("0.5", "x", "inf"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_downscale(bad)
+    yy, xx = np.mgrid[:240, :320]
+    big = (xx - 161.5) ** 2 + (yy - 121.5) ** 2 < 80 ** 2
+    small = mask_at_size(big, (80, 60))  # shrinking averages
+    assert small.shape == (60, 80) and abs(int(small.sum()) * 16 - int(big.sum())) < 200
+    up = mask_at_size(small, (320, 240))
+    blocks = np.repeat(np.repeat(small, 4, 0), 4, 1)
+    assert up.shape == (240, 320)
+    assert (up != big).sum() < (blocks != big).sum() and (up != big).sum() < 0.025 * big.sum()
+    same = mask_at_size(small, (80, 60))
+    assert same is not small and (same == small).all()
+    # with the photo as guide the outline follows the photo's own edge (joint bilateral)
+    rng = np.random.default_rng(0)
+    photo = (np.where(big[..., None], [200, 40, 40], [40, 160, 60])
+             + rng.normal(0, 4, (240, 320, 3)))
+    photo = np.clip(photo, 0, 255).astype(np.uint8)
+    assert (mask_at_size(small, (320, 240), guide=photo) != big).sum() < 0.1 * (up != big).sum()
+    flat = np.full_like(photo, 128)  # no edge in the photo: a smooth outline (distance vote)
+    assert (mask_at_size(small, (320, 240), guide=flat) != big).sum() <= (up != big).sum()

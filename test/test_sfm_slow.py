@@ -149,22 +149,39 @@ def test_segment_cli_on_photos_without_poses(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_segment_and_train_honour_downscale_on_a_bag(tmp_path):
+def test_segment_and_train_honour_downscale_on_a_bag(tmp_path, capsys):
     """`--downscale` reaches every input kind: segment once read bags and folders at full size
     (only COLMAP models were scaled) while `train` reloaded them at 1/downscale from
-    input.json, so the masks did not fit the training images."""
+    input.json, so the masks did not fit the training images. With no `--downscale` the
+    working size is picked from `--max-pixels` (here 320x240 -> 160x120): the masks are
+    still written at the photos' size, scored there as `ooi-seg eval` scores them, and
+    `train` reads the input at the same factor and brings the masks to it."""
     import json
     from ooi_seg_ros.capture_io import write_capture_bag
     from ooi_seg_ros.cli import main as cli_main
     sim = simulate_capture("aircraft", n_views=30, width=320, height=240, seed=1)
     bag = write_capture_bag(sim.capture, tmp_path / "cap.mcap")
     out = tmp_path / "seg"
-    assert cli_main(["segment", str(bag), "--downscale", "2", "--out", str(out)]) == 0
-    sizes = {Image.open(p).size for p in (out / "masks").glob("*.png")}
-    assert sizes == {(160, 120)}
+    assert cli_main(["segment", str(bag), "--max-pixels", "20000", "--out", str(out)]) == 0
+    info = json.loads((out / "input.json").read_text())
+    assert info["downscale"] == 2.0 and info["downscale_auto"] is True
+    assert info["working_size"] == [160, 120] and info["photo_size"] == [320, 240]
+    assert {Image.open(p).size for p in (out / "masks").glob("*.png")} == {(320, 240)}
+    rep = json.loads((out / "report.json").read_text())
+    capsys.readouterr()
+    assert cli_main(["eval", "--pred", str(out / "masks"), "--gt", str(bag), "--json"]) == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert ev["views"] == 30 and ev["mean"]["iou"] == pytest.approx(rep["metrics"]["mean"]["iou"])
+    assert ev["mean"]["iou"] > 0.65 and ev["mean"]["recall"] > 0.8, ev["mean"]  # 160x120
     tout = tmp_path / "train"
     assert cli_main(["train", str(out), "--out", str(tout), "--iterations", "5"]) == 0
-    assert json.loads((tout / "report.json").read_text())["n_train"] > 20
+    trep = json.loads((tout / "report.json").read_text())
+    assert trep["n_train"] > 20
+    # a fixed factor: the same working size, the masks again at the photos' size
+    out2 = tmp_path / "seg2"
+    assert cli_main(["segment", str(bag), "--downscale", "2", "--out", str(out2)]) == 0
+    assert json.loads((out2 / "input.json").read_text())["downscale_auto"] is False
+    assert {Image.open(p).size for p in (out2 / "masks").glob("*.png")} == {(320, 240)}
 
 
 @pytest.mark.slow

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from ..core.types import InputError
+from .segment import add_size_arguments, read_at_working_size
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,8 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--method", choices=("ours", "paper"), default=None,
                    help="segmentation preset (default: ours)")
-    p.add_argument("--downscale", type=float, default=1.0,
-                   help="read dataset images at 1/downscale resolution")
+    add_size_arguments(p)
     p.add_argument("--iterations", type=int, default=None, help="training iterations")
     p.add_argument("--max-gaussians", type=int, default=None, help="Gaussian budget (MCMC cap)")
     p.add_argument("--skip-train", action="store_true", help="stop after the masks")
@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from . import main as cli_main
     from ..capture_io import input_kind, read_capture_and_cloud
-    from ..seg.pipeline import check_memory, make_config, segment
+    from ..seg.pipeline import make_config, segment
     from ..seg.report import write_outputs
     from ..sfm.export import write_colmap_model, write_ply
     from ..sfm.pipeline import SfmConfig, reconstruct
@@ -51,8 +51,10 @@ def run(args: argparse.Namespace) -> int:
 
     print(f"[1/3] reading {src} ...", flush=True)
     kind = input_kind(str(src))
-    capture, cloud = read_capture_and_cloud(str(src), downscale=args.downscale)
-    check_memory(capture, downscale=args.downscale)  # before the SfM and the run
+    capture, cloud, photos, gt_full, size_info = read_at_working_size(  # memory checked
+        lambda f, lazy: read_capture_and_cloud(str(src), downscale=f, lazy_images=lazy),
+        args.downscale, args.max_pixels, lazy_differs=kind == "bag")
+    summary["downscale"] = size_info["downscale"]
     summary["views"] = len(capture.views)
     dropped = capture.meta.get("dropped")
     if dropped:
@@ -81,14 +83,15 @@ def run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     result = segment(capture, cloud, make_config(args.method))
     info = {"input": str(src.resolve()), "kind": "capture" if kind != "colmap" else kind,
-            "method": args.method, "config": None, "seed": None, "downscale": args.downscale,
+            "method": args.method, "config": None, "seed": None, **size_info,
             "cloud": "sfm", "views": len(capture.views),
             "image_keys": [v.key for v in capture.views],
             "image_sources": [v.source for v in capture.views]}
     if est_model:
         info["cloud"] = "sfm (poses estimated by mapping)"
         info["sfm_model"] = str(Path(est_model).resolve())
-    seg_dir = write_outputs(out / "segment", result, capture, info)
+    seg_dir = write_outputs(out / "segment", result, capture, info, photos=photos,
+                            photo_gt=gt_full)
     summary["times_s"]["segment"] = time.perf_counter() - t
     summary["segment"] = {"counts": result.counts, "warnings": result.warnings,
                           "metrics": result.metrics["mean"] if result.metrics else None}

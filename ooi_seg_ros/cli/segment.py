@@ -14,6 +14,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Callable, Optional
 
 from ..core.config import load_yaml
 from ..core.types import InputError
@@ -30,11 +31,72 @@ def register(subparsers) -> None:
     p.add_argument("--config", help="YAML with SegmentationConfig overrides")
     p.add_argument("--seed", type=int, default=None, help="seed of every random step")
     p.add_argument("--images", help="image folder of a COLMAP sparse model")
-    p.add_argument("--downscale", type=float, default=1.0,
-                   help="read the images at 1/downscale resolution (any input but sim:)")
+    add_size_arguments(p)
     p.add_argument("--sim-views", type=int, default=30, help="views of a sim: input")
     p.add_argument("--sim-size", default="160x120", help="WxH of a sim: input")
     p.set_defaults(func=run)
+
+
+def parse_downscale(text: str) -> Optional[float]:
+    """``--downscale``: "auto" (None) or a factor >= 1."""
+    if str(text).lower() == "auto":
+        return None
+    try:
+        f = float(text)
+    except ValueError:
+        f = float("nan")
+    if not (f >= 1.0 and f < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r}: give auto or a factor >= 1 (2 = half "
+                                         "resolution)")
+    return f
+
+
+def add_size_arguments(p: argparse.ArgumentParser) -> None:
+    """``--downscale`` and ``--max-pixels`` (segment and run)."""
+    from ..seg.pipeline import SEG_MAX_PIXELS
+    p.add_argument("--downscale", type=parse_downscale, default=None, metavar="auto|F",
+                   help="read the images at 1/F resolution (any input but sim:); auto "
+                        "(default): the smallest integer F that brings every view to "
+                        "--max-pixels and the run into the available memory. Masks are "
+                        "written at the photos' size either way")
+    p.add_argument("--max-pixels", type=int, default=SEG_MAX_PIXELS,
+                   help=f"with --downscale auto: pixels per view to work at (default "
+                        f"{SEG_MAX_PIXELS:,}; 0 = full size); the refinement's time grows "
+                        "linearly with it")
+
+
+def read_at_working_size(read: Callable[[float, bool], tuple], downscale: Optional[float],
+                         max_pixels: int, lazy_differs: bool = False) -> tuple:
+    """(capture, cloud, photo views by key or None, full-size ground-truth masks by key or
+    None, info) for ``read(downscale, lazy) -> (capture, cloud)``: the input is opened at full
+    size (lazily) to learn its photos' sizes, then read at ``downscale`` (None: the factor
+    ``working_downscale`` picks) -- every view in memory at the size the run works at. The
+    photo views (images loaded on demand) come back when that size is smaller, for writing
+    the masks at the photos' size. A capture too large for the memory even so is refused
+    (``check_memory``). ``lazy_differs``: a lazy read keeps images out of memory (a bag), so
+    the input is read again even at full size."""
+    from ..seg.pipeline import check_memory, working_downscale
+    probe, cloud = read(1.0, True)
+    sizes = [(v.camera.width, v.camera.height) for v in probe.views]
+    f = (float(working_downscale(sizes, max_pixels)) if downscale is None
+         else float(downscale))
+    photos = gt_full = None
+    if f != 1.0:
+        photos = {v.key: v for v in probe.views}
+        if probe.has_gt_masks:
+            gt_full = {v.key: v.gt_mask for v in probe.views}
+    if f != 1.0 or lazy_differs:
+        cap, cloud = read(f, False)
+    else:
+        cap = probe
+    check_memory(cap, downscale=f)  # before the run, not killed part way
+    photo = sorted(set(sizes))
+    info = {"downscale": f, "downscale_auto": downscale is None,
+            "max_pixels": max_pixels if downscale is None else None,
+            "photo_size": list(photo[-1]) if len(photo) == 1 else [list(s) for s in photo],
+            "working_size": [cap.views[0].camera.width, cap.views[0].camera.height]
+            if cap.views else None}
+    return cap, cloud, photos, gt_full, info
 
 
 def _colmap_dirs(path: Path, images: str | None) -> tuple[Path, Path] | None:
@@ -56,12 +118,12 @@ def _colmap_dirs(path: Path, images: str | None) -> tuple[Path, Path] | None:
 
 
 def load_input(args) -> tuple:
-    """(capture, cloud, input_info) for INPUT (see module doc). A capture too large for the
-    memory available is refused here, with the ``--downscale`` that fits."""
-    from ..seg.pipeline import check_memory
+    """(capture, cloud, input_info, photo views or None, full-size ground-truth masks or None)
+    for INPUT (see module doc), read at the working size (``read_at_working_size``). A
+    capture too large for the memory available is refused here, with the ``--downscale``
+    that fits."""
     src = str(args.input)
-    info = {"input": src, "method": args.method, "config": args.config, "seed": args.seed,
-            "downscale": args.downscale}
+    info = {"input": src, "method": args.method, "config": args.config, "seed": args.seed}
     if src.startswith("sim:"):
         from ..seg.proxy import depth_proxy_cloud
         from ..sim import simulate_capture
@@ -74,28 +136,32 @@ def load_input(args) -> tuple:
                              f"sim:SCENE[:SEED] and WxH") from None
         sim = simulate_capture(bits[1], n_views=args.sim_views, width=w, height=h, seed=seed)
         info.update({"kind": "sim", "scene": bits[1], "sim_seed": seed, "size": [w, h],
-                     "views": args.sim_views, "cloud": "depth proxy (seg.proxy)"})
-        return sim.capture, depth_proxy_cloud(sim, seed=seed), info
+                     "views": args.sim_views, "cloud": "depth proxy (seg.proxy)",
+                     "downscale": 1.0})
+        return sim.capture, depth_proxy_cloud(sim, seed=seed), info, None, None
     path = Path(src)
     if not path.exists():
         raise InputError(f"input {src} does not exist")
     dirs = _colmap_dirs(path, args.images) if path.is_dir() else None
     if dirs is not None:
         from ..sfm.colmap_io import load_colmap_model
-        cap, cloud = load_colmap_model(dirs[0], dirs[1], args.downscale)
-        check_memory(cap, downscale=args.downscale)  # before the run, not killed part way
+        cap, cloud, photos, gt_full, size_info = read_at_working_size(
+            lambda f, _lazy: load_colmap_model(dirs[0], dirs[1], f), args.downscale,
+            args.max_pixels)
+        info.update(size_info)
         info.update({"kind": "colmap", "sparse": str(dirs[0].resolve()),
                      "images": str(dirs[1].resolve())})
-        return cap, cloud, info
+        return cap, cloud, info, photos, gt_full
     try:
-        from ..capture_io import read_capture_and_cloud
+        from ..capture_io import input_kind, read_capture_and_cloud
     except ImportError:
         raise InputError(f"{src} is not a COLMAP model folder, and reading datasets/bags "
                          f"(ooi_seg_ros.capture_io) is not available in this build") from None
-    # the same downscale as `train` applies when it reloads this input from input.json (it
-    # was not passed here once: masks at full size, training images at 1/downscale)
-    cap, cloud = read_capture_and_cloud(path, downscale=args.downscale)
-    check_memory(cap, downscale=args.downscale)
+    # `train` reads this input again from input.json at the same downscale
+    cap, cloud, photos, gt_full, size_info = read_at_working_size(
+        lambda f, lazy: read_capture_and_cloud(path, downscale=f, lazy_images=lazy),
+        args.downscale, args.max_pixels, lazy_differs=input_kind(path) == "bag")
+    info.update(size_info)
     info["kind"] = "capture"
     dropped = {k: n for k, n in (cap.meta.get("dropped") or {}).items() if n}
     if dropped:  # counted and logged by the reader; said again where the user looks
@@ -137,7 +203,7 @@ def load_input(args) -> tuple:
                     f"by the mapping and get no mask ({', '.join(missing[:5])}"
                     f"{', ...' if len(missing) > 5 else ''})"]
             cap = sfm_cap
-    return cap, cloud, info
+    return cap, cloud, info, photos, gt_full
 
 
 def run(args) -> int:
@@ -148,7 +214,7 @@ def run(args) -> int:
         overrides["seed"] = args.seed
     cfg = make_config(args.method, overrides)
     t0 = time.perf_counter()
-    cap, cloud, info = load_input(args)
+    cap, cloud, info, photos, gt_full = load_input(args)
     t_load = time.perf_counter() - t0
     result = segment(cap, cloud, cfg)
     result.timings["load"] = t_load
@@ -156,7 +222,7 @@ def run(args) -> int:
     info["views"] = len(cap.views)
     info["image_keys"] = [v.key for v in cap.views]
     info["image_sources"] = [v.source for v in cap.views]
-    out = write_outputs(args.out, result, cap, info)
+    out = write_outputs(args.out, result, cap, info, photos=photos, photo_gt=gt_full)
     mean = result.metrics["mean"] if result.metrics else None
     print(json.dumps({"out": str(out), "counts": result.counts, "metrics": mean,
                       "warnings": result.warnings}))

@@ -126,8 +126,7 @@ def load_inputs(args: argparse.Namespace) -> tuple[Capture, Optional[dict], Opti
         for v in capture.views:
             p = masks_dir / f"{v.key}.png"
             if p.is_file():
-                m = _load_mask(p)
-                masks[v.key] = m
+                masks[v.key] = _mask_for_view(_load_mask(p), v, p)
         if not masks:
             raise InputError(f"no <key>.png masks in {masks_dir} match the capture's view keys "
                              f"(e.g. {capture.views[0].key}.png)")
@@ -143,6 +142,21 @@ def load_inputs(args: argparse.Namespace) -> tuple[Capture, Optional[dict], Opti
     if init_ply is not None:
         pts, cols = _read_points(init_ply)
     return capture, masks, pts, cols
+
+
+def _mask_for_view(mask: np.ndarray, view, path: Path) -> np.ndarray:
+    """``mask`` at ``view``'s size: masks are written at the photo's size (``segment``) and
+    training may read the photos smaller (``--downscale``); a mask of another shape than its
+    photo is an error, not stretched."""
+    from ..seg.masks import mask_at_size
+    w, h = view.camera.width, view.camera.height
+    mh, mw = mask.shape
+    if (mw, mh) == (w, h):
+        return mask
+    if abs(mw / mh - w / h) > 0.02 * w / h:
+        raise InputError(f"mask {path} is {mw}x{mh} but its image is {w}x{h} (another shape); "
+                         "give masks made for these images")
+    return mask_at_size(mask, (w, h))
 
 
 def _with_model_poses(capture: Capture, model_dir: Path) -> Capture:

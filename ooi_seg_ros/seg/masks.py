@@ -437,3 +437,71 @@ def render_masks(views: list[View], cfg: MaskConfig, mesh: TriMesh, xyz: np.ndar
         masks, p = hull_refine(masks, views, xyz, cfg)
         params["hull"] = p
     return masks, params
+
+
+def mask_at_size(mask: np.ndarray, size: tuple[int, int],
+                 guide: Optional[np.ndarray] = None) -> np.ndarray:
+    """``mask`` (bool [H, W]) at ``size`` = (width, height): the mask of a view segmented at a
+    working size, for its photo. Shrinking averages (box) and keeps >= 0.5. Enlarging
+    interpolates the 0/1 mask bilinearly and keeps >= 0.5; with ``guide`` (the photo, RGB at
+    ``size``) the outline is then placed by the photo's own pixels (``guided_enlarge``)."""
+    from PIL import Image
+    h, w = mask.shape
+    if (w, h) == tuple(size):
+        return mask.astype(bool)
+    enlarge = size[0] * size[1] > w * h
+    im = Image.fromarray(mask.astype(np.uint8) * 255).resize(
+        tuple(size), Image.Resampling.BILINEAR if enlarge else Image.Resampling.BOX)
+    out = np.asarray(im) >= 128
+    if enlarge and guide is not None and mask.any() and not mask.all():
+        out = guided_enlarge(mask, out, guide)
+    return out
+
+
+def guided_enlarge(mask: np.ndarray, enlarged: np.ndarray, photo: np.ndarray,
+                   radius: int = 2, sigma_px: float = 1.0) -> np.ndarray:
+    """Joint bilateral upsampling (Kopf et al. 2007) of the outline of a working-size ``mask``
+    to its ``photo``: every photo pixel within one working pixel of the outline takes the
+    weighted vote of the working pixels around it (``radius``), weighted by distance
+    (Gaussian, ``sigma_px`` working pixels) and by how close the working pixel's colour (the
+    photo averaged down, as the run saw it) is to the photo pixel's own; the colour width is
+    derived per view: the median colour distance between an outline photo pixel and the
+    working pixel it lies in (what averaging down changed there). Elsewhere ``enlarged`` (the
+    bilinear enlargement) is kept. Measured at twice the working size on 640x360 captures:
+    IoU 0.870 -> 0.903 (stool) and 0.785 -> 0.829 (bicycle) against the bilinear enlargement
+    (BENCHMARKS, Segmentation > Session 35)."""
+    from PIL import Image
+    h, w = mask.shape
+    H, W = enlarged.shape
+    photo = np.asarray(photo)
+    if photo.shape[:2] != (H, W) or photo.ndim != 3:
+        return enlarged
+    small = np.asarray(Image.fromarray(photo).resize((w, h), Image.Resampling.BOX), np.float32)
+    edge = ndimage.binary_dilation(mask) & ~ndimage.binary_erosion(mask)
+    band = np.asarray(Image.fromarray(edge.astype(np.uint8) * 255).resize(
+        (W, H), Image.Resampling.NEAREST)) > 0
+    ys, xs = np.nonzero(band)
+    if len(xs) == 0:
+        return enlarged
+    u = (xs + 0.5) * (w / W) - 0.5
+    v = (ys + 0.5) * (h / H) - 0.5
+    ui, vi = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+    col = photo[ys, xs].astype(np.float32)
+    own = small[np.clip(vi, 0, h - 1), np.clip(ui, 0, w - 1)]
+    sigma_c = max(float(np.median(np.sqrt(((col - own) ** 2).sum(1)))), 1.0)
+    m = mask.astype(np.float32)
+    num = np.zeros(len(xs))
+    den = np.zeros(len(xs))
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            qx = np.clip(ui + dx, 0, w - 1)
+            qy = np.clip(vi + dy, 0, h - 1)
+            d_px = (qx - u) ** 2 + (qy - v) ** 2
+            d_col = ((small[qy, qx] - col) ** 2).sum(1)
+            wt = np.exp(-d_px / (2 * sigma_px ** 2) - d_col / (2 * sigma_c ** 2))
+            num += wt * m[qy, qx]
+            den += wt
+    out = enlarged.copy()
+    # a colour unlike every working pixel around (all weights ~0): the bilinear value stays
+    out[ys, xs] = np.where(den > 1e-12, num >= 0.5 * den, enlarged[ys, xs])
+    return out

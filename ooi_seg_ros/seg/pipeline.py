@@ -446,6 +446,40 @@ def estimate_memory_bytes(capture: Capture) -> int:
     return int(SEG_MEMORY_PER_PIXEL * px)
 
 
+# the most pixels per view ``ooi-seg segment`` / ``run`` work at when no --downscale is given:
+# the refinement's time is linear in pixels (the real bonsai: 0.43 MP x 289 views 14 min, on
+# 2 cores), so photos above about 1 MP are read smaller and the masks scaled back up to them
+SEG_MAX_PIXELS = 1_000_000
+
+
+def working_downscale(sizes: list[tuple[int, int]], max_pixels: int = SEG_MAX_PIXELS,
+                      available: Optional[int] = None) -> int:
+    """The integer factor to read views of ``sizes`` ((width, height) each) at when the user
+    gave none: the smallest f >= 1 that brings every view to at most ``max_pixels`` pixels
+    (``<= 0``: no limit) and the run's estimated memory (``estimate_memory_bytes``) within
+    ``available`` bytes (default: what the machine has available now). Sizes as
+    ``CameraIntrinsics.scaled(1 / f)`` gives them; a view is never made smaller than 16 px on
+    its short side for the pixel limit."""
+    if not sizes:
+        return 1
+    if available is None:
+        from ..core.resources import available_memory
+        available = available_memory()
+
+    def px(f: int) -> list[int]:
+        return [int(round(w / f)) * int(round(h / f)) for w, h in sizes]
+
+    short = min(min(w, h) for w, h in sizes)
+    f = 1
+    while f < 64:
+        p = px(f)
+        over_px = max_pixels > 0 and max(p) > max_pixels and short / (f + 1) >= 16
+        if not over_px and SEG_MEMORY_PER_PIXEL * sum(p) <= available:
+            break
+        f += 1
+    return f
+
+
 def check_memory(capture: Capture, available: Optional[int] = None,
                  downscale: float = 1.0) -> None:
     """Raise ``InputError`` before a run that clearly cannot fit in memory (the system would

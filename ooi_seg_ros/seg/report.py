@@ -91,10 +91,21 @@ def report_dict(result: SegmentationResult) -> dict:
 
 
 def write_outputs(out: str | Path, result: SegmentationResult, capture: Capture,
-                  input_info: dict, n_overlays: int = 8) -> Path:
-    """Write every output of ``ooi-seg segment`` into ``out`` and return the folder."""
+                  input_info: dict, n_overlays: int = 8, photos: Optional[dict] = None,
+                  photo_gt: Optional[dict] = None) -> Path:
+    """Write every output of ``ooi-seg segment`` into ``out`` and return the folder.
+
+    ``photos``: the views at their photos' size by key (images loaded on demand), when the
+    run worked at a smaller size: each mask is written at its photo's size, its outline
+    placed by the photo (``masks.mask_at_size`` with the photo as guide), so that a mask
+    matches the photo it is named after. ``photo_gt``: ground-truth masks at the photos'
+    size; the metrics are then taken from the written masks, as ``ooi-seg eval`` takes them
+    (``input_info["metrics_size"] = "photo"``)."""
     import open3d as o3d
     from PIL import Image
+
+    from .masks import mask_at_size
+    from .metrics import mask_metrics
     out = Path(out)
     try:
         (out / "masks").mkdir(parents=True, exist_ok=True)
@@ -105,9 +116,31 @@ def write_outputs(out: str | Path, result: SegmentationResult, capture: Capture,
     m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(result.mesh.vertices),
                                   o3d.utility.Vector3iVector(result.mesh.triangles))
     o3d.io.write_triangle_mesh(str(out / "ooi_mesh.ply"), m)
+    per_view: dict = {}
+    unguided: list[str] = []
     for v in capture.views:
-        Image.fromarray(result.masks[v.key].astype(np.uint8) * 255).save(
-            out / "masks" / f"{v.key}.png")
+        mask = result.masks[v.key]
+        pv = (photos or {}).get(v.key)
+        size = (pv.camera.width, pv.camera.height) if pv is not None else None
+        if size is not None and size != (v.camera.width, v.camera.height):
+            try:
+                guide = pv.get_image()
+            except InputError:  # read once already; gone since: enlarged without it
+                guide = None
+                unguided.append(v.key)
+            mask = mask_at_size(mask, size, guide=guide)
+        if photo_gt is not None and v.key in photo_gt:
+            per_view[v.key] = mask_metrics(mask, photo_gt[v.key])
+        Image.fromarray(mask.astype(np.uint8) * 255).save(out / "masks" / f"{v.key}.png")
+    if unguided:
+        result.warnings.append(f"masks: {len(unguided)} photo(s) could not be read again to "
+                               f"place the enlarged outline ({', '.join(unguided[:5])})")
+    if per_view and result.metrics is not None:
+        result.metrics = {"mean": {k: float(np.mean([p[k] for p in per_view.values()]))
+                                   for k in ("iou", "precision", "recall", "dice")},
+                          "per_view": per_view, "views": len(per_view),
+                          "missing_predictions": sorted(set(photo_gt) - set(per_view))}
+        input_info["metrics_size"] = "photo"
     rep = report_dict(result)
     (out / "report.json").write_text(json.dumps(rep, indent=1))
     cfgmod.write_yaml(result.config, out / "config.yaml")
