@@ -69,13 +69,19 @@ def test_downscaled_camera_and_image_agree(f):
     assert np.allclose(scale_pixels(uv_small, f), uv_full, atol=1e-4)
 
 
-def test_upscale_mask_is_nearest_and_sized():
+def test_upscale_mask_is_smooth_and_sized():
     m = np.zeros((10, 16), bool)
     m[2:5, 3:9] = True
     up = upscale_mask(m, 3, 50, 31)  # source 50x31 kept at 16x10 (remainder cropped)
     assert up.shape == (31, 50)
-    assert up[6:15, 9:27].all() and up.sum() == 9 * 18
+    # the blocks' own pixels (source 9..26 x 6..14), outline within a pixel of theirs
+    assert up[7:14, 10:26].all() and not up[:5].any() and not up[:, :8].any()
+    assert abs(int(up.sum()) - 9 * 18) <= 2 * (9 + 18)
     assert upscale_mask(m, 1, 16, 10) is m
+    # a diagonal edge enlarged: no factor-sized steps (each row's edge moves ~1 px per row)
+    d = np.tri(20, 20, dtype=bool)
+    edge = upscale_mask(d, 4, 80, 80).argmin(axis=1)
+    assert np.abs(np.diff(edge[8:72])).max() <= 2
 
 
 def _kf(assembler, stamp, pose, size=(48, 64)):
@@ -139,6 +145,32 @@ def test_keyframe_memory_is_bounded_in_bytes(ctx):
         v = asm.keyframes[111]
         assert v.image.shape == (24, 32, 3) and v.camera.width == 32
         assert asm.full_cameras[111].width == 64 and asm.factors[111] == 2
+    finally:
+        node.destroy_node()
+
+
+def test_kept_guides_count_in_the_budget_and_go_with_their_keyframe(ctx):
+    """Keyframes kept smaller keep a JPEG of the received image (to place final masks'
+    outlines); its bytes count in the budget and leave with the keyframe."""
+    node = Node("asmg", context=ctx, namespace=_ns())
+    try:
+        diag = Diagnostics(node)
+        one = 24 * 32 * 3
+        asm = KeyframeAssembler(diag, max_keyframes=1000, max_bytes=4 * one, downscale=2,
+                                evict_policy="oldest", guide_quality=90)
+        for k in range(6):
+            assert _kf(asm, 100 + k, look_at(np.array([4.0, 0.1 * k, 1.0]), np.zeros(3)))
+        assert sorted(asm.guides) == sorted(asm.keyframes) and len(asm) < 4
+        assert asm.nbytes == len(asm) * one + sum(len(g) for g in asm.guides.values())
+        g = asm.guide(105)
+        assert g.shape == (48, 64, 3) and np.abs(g.astype(int) - 105).max() <= 2
+        assert asm.guide(100) is None  # evicted
+        full = KeyframeAssembler(diag, max_keyframes=10, downscale=1, guide_quality=95)
+        assert _kf(full, 7, look_at(np.array([4.0, 0.0, 1.0]), np.zeros(3)))
+        assert full.guides == {} and full.guide(7) is None  # kept whole: nothing to place
+        off = KeyframeAssembler(diag, max_keyframes=10, downscale=2)
+        assert _kf(off, 7, look_at(np.array([4.0, 0.0, 1.0]), np.zeros(3)))
+        assert off.guides == {} and off.nbytes == one
     finally:
         node.destroy_node()
 
@@ -456,6 +488,17 @@ def test_segmentation_on_downscaled_keyframes_publishes_full_size_masks(ctx):
             assert all(m.shape == (240, 320) for m in masks.values())
             if f == 2:
                 assert all(v.image.shape == (120, 160, 3) for v in node.keyframes.values())
+                assert sorted(node.assembler.guides) == sorted(gt)  # final outlines placed
+                # a kept final mask sent again (republish_kept) is the one published, bit
+                # for bit, without placing its outline again
+                assert sorted(node._final_full) == sorted(gt)
+                node.assembler.guide = None  # not called again
+                s0 = sorted(gt)[3]
+                first = masks.pop(s0)
+                small = np.zeros((120, 160), bool)
+                full = (node.assembler.full_cameras[s0], node.assembler.factors[s0])
+                assert node._publish_mask(small, s0, full, again=True)
+                assert np.array_equal(masks[s0], first)
             results[f] = masks
         finally:
             node.destroy_node()

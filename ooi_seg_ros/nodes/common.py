@@ -391,11 +391,39 @@ def downscale_camera(cam: CameraIntrinsics, factor: int) -> CameraIntrinsics:
                             cam.distortion_model, np.array(cam.dist, dtype=float))
 
 
-def upscale_mask(mask: np.ndarray, factor: int, width: int, height: int) -> np.ndarray:
-    """bool [height, width] of a mask rendered at 1/factor (nearest; the edge is replicated)."""
+def encode_guide(rgb: np.ndarray, quality: int) -> Optional[bytes]:
+    """JPEG bytes of an RGB image at ``quality`` (1-100; 0 or less: None)."""
+    if quality <= 0:
+        return None
+    import cv2
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]),
+                           [cv2.IMWRITE_JPEG_QUALITY, int(min(quality, 100))])
+    return buf.tobytes() if ok else None
+
+
+def decode_guide(data: bytes) -> Optional[np.ndarray]:
+    """The RGB image of ``encode_guide``'s bytes (None if they do not decode)."""
+    import cv2
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    return None if bgr is None else np.ascontiguousarray(bgr[..., ::-1])
+
+
+def upscale_mask(mask: np.ndarray, factor: int, width: int, height: int,
+                 guide: Optional[np.ndarray] = None) -> np.ndarray:
+    """bool [height, width] of a mask rendered at 1/factor (``downscale_rgb``'s blocks):
+    enlarged bilinearly and kept >= 0.5 (a smooth outline, not factor-sized steps;
+    ``seg.masks.mask_at_size``), the cropped remainder replicated from the edge. ``guide``:
+    the image at [height, width]; the outline is then placed by its pixels (joint bilateral
+    upsampling, ``seg.masks.guided_enlarge``)."""
     if factor <= 1 and mask.shape == (height, width):
         return mask
-    up = np.repeat(np.repeat(mask, factor, axis=0), factor, axis=1)[:height, :width]
+    from ..seg.masks import mask_at_size
+    h, w = mask.shape
+    if guide is not None and guide.shape[:2] == (height, width):
+        guide = guide[:h * factor, :w * factor]
+    else:
+        guide = None
+    up = mask_at_size(mask, (w * factor, h * factor), guide=guide)[:height, :width]
     if up.shape != (height, width):
         up = np.pad(up, ((0, height - up.shape[0]), (0, width - up.shape[1])), mode="edge")
     return up
@@ -457,14 +485,15 @@ class KeyframeAssembler:
                   else auto_image_budget_bytes())
         out = cls(diag, cfg.max_keyframes, max_bytes=budget, downscale=cfg.image_downscale,
                   max_pixels=cfg.image_max_pixels, evict_policy=cfg.evict_policy, warn=warn,
-                  on_evict=on_evict)
+                  on_evict=on_evict, guide_quality=int(getattr(cfg, "mask_guide_quality", 0)))
         diag.set("image_budget_mb", f"{budget / 2 ** 20:.0f}")
         return out
 
     def __init__(self, diag: Diagnostics, max_keyframes: int, max_pending: int = 100,
                  on_evict: Optional[Callable[[int], None]] = None, max_bytes: int = 0,
                  downscale: int = 1, max_pixels: int = 0, evict_policy: str = "redundant",
-                 warn: Optional[Callable[[str, str], None]] = None) -> None:
+                 warn: Optional[Callable[[str, str], None]] = None,
+                 guide_quality: int = 0) -> None:
         import collections
 
         self.diag = diag
@@ -479,6 +508,8 @@ class KeyframeAssembler:
         self.keyframes: "collections.OrderedDict[int, Any]" = collections.OrderedDict()
         self.full_cameras: dict[int, CameraIntrinsics] = {}
         self.factors: dict[int, int] = {}
+        self.guide_quality = int(guide_quality)
+        self.guides: dict[int, bytes] = {}  # JPEG of the received image (kept smaller only)
         self.nbytes = 0
         self._parts: dict[int, dict] = {}
         self.lock = threading.Lock()
@@ -514,14 +545,19 @@ class KeyframeAssembler:
         small = np.ascontiguousarray(downscale_rgb(rgb, f))  # outside the lock: ~10 ms
         view = View(key=str(stamp_ns), stamp_ns=stamp_ns, camera=downscale_camera(cam, f),
                     pose=parts["pose"], image=small)
+        guide = encode_guide(rgb, self.guide_quality) if f > 1 else None
         evicted = []
         with self.lock:
             if stamp_ns in self.keyframes:  # a repeated keyframe replaces the old one
                 self.nbytes -= self.keyframes.pop(stamp_ns).image.nbytes
+                self.nbytes -= len(self.guides.pop(stamp_ns, b""))
             self.keyframes[stamp_ns] = view
             self.full_cameras[stamp_ns] = cam
             self.factors[stamp_ns] = f
             self.nbytes += small.nbytes
+            if guide is not None:
+                self.guides[stamp_ns] = guide
+                self.nbytes += len(guide)
             while len(self.keyframes) > 1 and (
                     len(self.keyframes) > self.max_keyframes
                     or (self.max_bytes > 0 and self.nbytes > self.max_bytes)):
@@ -530,7 +566,7 @@ class KeyframeAssembler:
                 gone = self.keyframes.pop(old)
                 self.full_cameras.pop(old, None)
                 self.factors.pop(old, None)
-                self.nbytes -= gone.image.nbytes
+                self.nbytes -= gone.image.nbytes + len(self.guides.pop(old, b""))
                 self.diag.count("dropped_old_keyframes" if over_count
                                 else "dropped_keyframe_budget")
                 evicted.append(old)
@@ -546,6 +582,13 @@ class KeyframeAssembler:
         self.diag.set("keyframes", n)
         self.diag.set("keyframe_image_mb", f"{nbytes / 2 ** 20:.1f}")
         return True
+
+    def guide(self, stamp_ns: int) -> Optional[np.ndarray]:
+        """The received (full-size) image of a keyframe kept smaller, decoded from its JPEG;
+        None when none is kept (kept at full size, evicted, or ``guide_quality`` 0)."""
+        with self.lock:
+            data = self.guides.get(stamp_ns)
+        return decode_guide(data) if data is not None else None
 
     def _victim(self) -> int:
         """Stamp of the keyframe to evict (caller holds the lock; >= 2 keyframes kept)."""

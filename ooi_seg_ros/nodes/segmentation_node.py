@@ -49,8 +49,11 @@ Memory is bounded in bytes: keyframe images are kept downscaled by an integer fa
 from their size (``image_downscale``/``image_max_pixels``) within ``image_budget_mb``; beyond
 it the most redundant keyframe (camera closest to another kept one) is evicted, counted and
 logged. The segmentation runs on those copies; masks are published at each keyframe's own
-size (nearest upsampling of the mask rendered at the working size). The worker process keeps
-its own copy of them (sent once per keyframe), so image memory is twice the budget with it.
+size: the mask made at the working size enlarged bilinearly, and for final masks its outline
+placed by the received image, of which a JPEG (``mask_guide_quality``, ~0.2 MB at 1280x720)
+is kept beside the smaller copy within the same budget (joint bilateral upsampling,
+``seg.masks.guided_enlarge``). The worker process keeps its own copy of the smaller images
+(sent once per keyframe), so image memory is about twice the budget with it.
 """
 
 from __future__ import annotations
@@ -116,6 +119,12 @@ class SegNodeConfig:
     evict_policy: str = dataclasses.field(
         default="redundant", metadata={"doc": "which keyframe goes when over budget: redundant "
                                               "(camera nearest another kept one) or oldest"})
+    mask_guide_quality: int = dataclasses.field(
+        default=90, metadata={"doc": "keyframes kept smaller than received also keep the "
+                                     "received image as a JPEG of this quality, which places "
+                                     "the outline of their final masks enlarged to it (joint "
+                                     "bilateral upsampling; about 0.2 MB per 1280x720 "
+                                     "keyframe, within image_budget_mb; 0 = none)"})
     qos_depth: int = dataclasses.field(
         default=10, metadata={"doc": "history depth of the keyframe subscriptions"})
     mask_qos_depth: int = dataclasses.field(
@@ -196,6 +205,8 @@ SPECS = {
     "idle_run_s": ParamSpec("re-segment after this long without input (0 = off)", 0.0, 3600.0),
     "min_keyframes": ParamSpec("keyframes before the first run", 2, 100000),
     "max_keyframes": ParamSpec("keyframes kept in memory", 2, 1000000, read_only=True),
+    "mask_guide_quality": ParamSpec("JPEG quality of the received images kept to place final "
+                                    "masks' outlines (0 = none)", 0, 100, read_only=True),
     "mask_stride": ParamSpec("publish masks for every k-th keyframe", 1, 1000),
     "provisional_masks": ParamSpec("provisional masks for keyframes no run covered yet"),
     "provisional_refresh": ParamSpec("re-render provisional masks from a newer OOI cloud"),
@@ -319,6 +330,9 @@ class SegmentationNode(Node):
         self._final_src: dict[int, tuple[int, np.ndarray]] = {}
         # final masks bit-packed ({stamp: (bits, shape)}) for republish_kept
         self._final_bits: dict[int, tuple[np.ndarray, tuple]] = {}
+        # the same enlarged to keyframes kept smaller (as published: its outline placed by
+        # the received image), so that republishing does not place it again
+        self._final_full: dict[int, tuple[np.ndarray, tuple]] = {}
         self._provisional: dict[int, int] = {}  # keyframe -> cloud seq its mask came from
         self._refresh_next_t = 0.0  # monotonic time before which no provisional mask refresh
         self._cloud_claimed = 0  # newest SfM cloud seq a run has taken up (full or cloud-only)
@@ -362,6 +376,7 @@ class SegmentationNode(Node):
                 self._final.discard(stamp_ns)
                 self._final_src.pop(stamp_ns, None)
                 self._final_bits.pop(stamp_ns, None)
+                self._final_full.pop(stamp_ns, None)
             self._new_since_run += 1
             self._last_input = time.monotonic()
             self._wake.set()  # a provisional mask for it
@@ -657,16 +672,31 @@ class SegmentationNode(Node):
         return segment(capture, cloud, cfg, **kwargs)
 
     def _publish_mask(self, mask: np.ndarray, stamp_ns: int, full: tuple,
-                      provisional_from: Optional[int] = None) -> bool:
+                      provisional_from: Optional[int] = None, again: bool = False) -> bool:
         """Publishes one keyframe's mask at its own size and records whether it is final.
 
         ``provisional_from`` (the sequence number of the SfM cloud whose OOI cloud it was
         rendered from) marks a provisional mask; it is dropped when the keyframe has a final
         mask already or was evicted. The check and the publication happen under one lock, so
         a provisional mask never goes out after the final one of the same keyframe.
+        ``again``: the keyframe's kept final mask sent again (``republish_kept``): the
+        enlarged mask published before is reused, not enlarged again.
         """
         cam, f = full
-        mask = upscale_mask(np.asarray(mask, bool), f, cam.width, cam.height)
+        final = provisional_from is None
+        with self._lock:
+            kept = self._final_full.get(stamp_ns) if again and f > 1 else None
+        if kept is not None:  # ``again``: the kept final mask, as published before
+            mask = np.unpackbits(kept[0], count=int(np.prod(kept[1]))).reshape(kept[1])
+            mask = mask.astype(bool)
+        else:
+            # a final mask's outline is placed by the received image (provisional ones are
+            # quick previews: enlarged only)
+            guide = self.assembler.guide(stamp_ns) if final and f > 1 else None
+            mask = upscale_mask(np.asarray(mask, bool), f, cam.width, cam.height, guide=guide)
+            if final and f > 1:
+                with self._lock:
+                    self._final_full[stamp_ns] = (np.packbits(mask), mask.shape)
         msg = msgconv.mask_to_image(mask, msgconv.ns_to_stamp(stamp_ns),
                                     mask_frame_id(provisional_from is not None))
         with self._mask_pub_lock:
@@ -725,7 +755,8 @@ class SegmentationNode(Node):
                 if bits is None:
                     continue
                 mask = np.unpackbits(bits[0], count=int(np.prod(bits[1]))).reshape(bits[1])
-                if self._publish_mask(mask.astype(bool), v.stamp_ns, full[v.stamp_ns]):
+                if self._publish_mask(mask.astype(bool), v.stamp_ns, full[v.stamp_ns],
+                                      again=True):
                     self.diag.count("masks_republished")
         self._report_provisional()
 
@@ -896,6 +927,8 @@ class SegmentationNode(Node):
                 del self._final_src[s]
             for s in [s for s in self._final_bits if s not in kept]:
                 del self._final_bits[s]
+            for s in [s for s in self._final_full if s not in kept]:
+                del self._final_full[s]
             prov = sorted(self._provisional)
         self.diag.set("masks_provisional", len(prov))
         shown = ",".join(str(s) for s in prov[-10:])
