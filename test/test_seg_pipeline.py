@@ -347,3 +347,30 @@ def test_working_size_is_picked_from_pixels_and_memory_and_masks_go_back_to_the_
     assert (mask_at_size(small, (320, 240), guide=photo) != big).sum() < 0.1 * (up != big).sum()
     flat = np.full_like(photo, 128)  # no edge in the photo: a smooth outline (distance vote)
     assert (mask_at_size(small, (320, 240), guide=flat) != big).sum() <= (up != big).sum()
+
+
+def test_outline_vote_follows_the_image_and_keeps_a_thin_part():
+    """The last refinement step decides every outline pixel again by the joint bilateral vote
+    of the pixels around it: background pixels wrongly in the mask and object pixels
+    wrongly out of it go to the side their colour says, while a one-pixel-wide part of the
+    object's colour stays (a vote by distance alone would erase it)."""
+    from ooi_seg_ros.seg.masks import outline_vote
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[:120, :160]
+    obj = (xx - 70) ** 2 + (yy - 60) ** 2 < 30 ** 2
+    obj[60, 100:140] = True  # a wire, one pixel wide, sticking out of the disc
+    img = (np.where(obj[..., None], [200, 40, 40], [40, 160, 60])
+           + rng.normal(0, 4, (120, 160, 3)))
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    ring_out = ndimage.binary_dilation(obj) & ~obj
+    ring_in = obj & ~ndimage.binary_erosion(obj)
+    mask = obj.copy()
+    out_px, in_px = np.argwhere(ring_out)[::9][:12], np.argwhere(ring_in)[::9][:12]
+    mask[tuple(out_px.T)] = True  # background pixels wrongly taken
+    mask[tuple(in_px.T)] = False  # object pixels wrongly left out
+    mask[60, 100:140] = True
+    fixed = outline_vote(mask, img)
+    assert (mask != obj).sum() >= 20 and (fixed != obj).sum() <= 2, (fixed != obj).sum()
+    assert fixed[60, 101:139].all()  # the wire stays
+    assert (outline_vote(obj, img) == obj).all()  # a right mask stays as it is
+    assert not outline_vote(np.zeros_like(obj), img).any()

@@ -28,7 +28,8 @@ from scipy import ndimage
 
 from ..core.geometry import finite_rows
 from ..core.types import SfmCloud, View
-from .masks import MaskConfig, fill_small_holes, point_masks, project_distorted
+from .masks import (MaskConfig, fill_small_holes, outline_vote, point_masks,
+                    project_distorted)
 from .photo import PlaneCheckConfig, PlaneConsistency, PointSet
 
 
@@ -66,6 +67,9 @@ class RefineConfig:
     # window (px) around it; 0 = off (see ``edge_matte``)
     edge_alpha: float = 0.5  # outline matting: the ring pixel joins when its estimated object
     # coverage (its colour's position between the two local means) is at least this
+    outline_vote: bool = False  # last: every outline pixel decided again by the joint
+    # bilateral vote of the pixels around it (``masks.outline_vote``: colour width half the
+    # view's median colour step across the outline)
     seed: int = 0  # seed of OpenCV's RNG (GrabCut's colour-model initialisation)
     hull_add: bool = False  # multi-view recovery (``hull_additions``): a pixel outside a view's
     # refined mask joins it when its ray meets a voxel that most views' masks hold (the visual
@@ -1126,6 +1130,10 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
             if v.key in out:
                 out[v.key] = edge_matte(v.get_image(), out[v.key], int(cfg.edge_window),
                                         cfg.edge_alpha)
+    if cfg.outline_vote:
+        for v in views:
+            if v.key in out:
+                out[v.key] = outline_vote(out[v.key], v.get_image())
     params.update({"refined": refined, "rejected": rejected})
     if floor is not None:
         params["plane_check_s"] = round(floor.seconds, 3)
