@@ -168,7 +168,7 @@ def test_pixel_votes_only_remove_pixels_from_the_mask(aircraft):
     11)."""
     sim, cloud = aircraft
     pc = {"max_deg": 65.0, "rank": 2}
-    base = {"refine": {"hull_add": False, "edge_window": 0,
+    base = {"refine": {"hull_add": False, "edge_window": 0, "outline_vote": False,
                        "plane_check": dict(pc, pixel_votes=False)}}
     without = segment(sim.capture, cloud, make_config("ours", base))
     on = {"refine": dict(base["refine"], plane_check=dict(pc, pixel_votes=True))}
@@ -193,7 +193,8 @@ def test_keep_discs_only_adds_pixels_that_join_the_mask(aircraft):
     # 12 views 30 deg apart: the neighbours of the plane check lie up to 60 deg away; the
     # per-pixel votes (which only remove pixels, tested above) off to see keep_discs alone
     pc = {"max_deg": 65.0, "rank": 2, "pixel_votes": False}
-    base = {"refine": {"hull_add": False, "edge_window": 0, "plane_check": pc}}
+    base = {"refine": {"hull_add": False, "edge_window": 0, "outline_vote": False,
+                       "plane_check": pc}}
     with_keep = segment(sim.capture, cloud, make_config("ours", base))
     off = {"refine": dict(base["refine"], plane_check=dict(pc, keep_discs=False))}
     without = segment(sim.capture, cloud, make_config("ours", off))
