@@ -66,7 +66,9 @@ class RefineConfig:
     # colour is nearer the mean of the object pixels than of the background pixels within this
     # window (px) around it; 0 = off (see ``edge_matte``)
     edge_alpha: float = 0.5  # outline matting: the ring pixel joins when its estimated object
-    # coverage (its colour's position between the two local means) is at least this
+    # coverage (its colour's position between the two local means) is at least this. 0.5 is
+    # the truth's own rule (a pixel at least half covered is object); ``ours`` used 0.4,
+    # read off the simulator, until the outline vote (session 36: 0.5 then scored as well)
     outline_vote: bool = False  # last: every outline pixel decided again by the joint
     # bilateral vote of the pixels around it (``masks.outline_vote``: colour width half the
     # view's median colour step across the outline)
