@@ -99,7 +99,8 @@ def outline_band(gt: np.ndarray, width: float) -> np.ndarray:
 def attribute(scene: str, args) -> dict:
     """Run the default on ``scene`` and split its error pixels by cause."""
     w, h = (int(x) for x in args.size.split("x"))
-    cap, cloud, _ = load_case(scene, args.seed, args.views, (w, h), "sfm", Path(args.cache))
+    cap, cloud, _ = load_case(scene, args.seed, args.views, (w, h), "sfm", Path(args.cache),
+                              jpeg=args.jpeg)
     views = cap.views
     idx = {v.key: i for i, v in enumerate(views)}
     floors: dict[int, np.ndarray] = {}
@@ -211,6 +212,8 @@ def main() -> None:
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2")
     ap.add_argument("--view-step", type=int, default=1, help="score every k-th view only")
+    ap.add_argument("--jpeg", type=int, default=0, metavar="Q",
+                    help="the captures through JPEG at quality Q (bench_seg_quality's cache)")
     ap.add_argument("--outline", type=float, default=1.0,
                     help="outline band half-width in px (the anti-aliased edge)")
     ap.add_argument("--plane-tol", type=float, default=0.01,
