@@ -26,6 +26,28 @@ def test_ours_beats_paper_on_sim(aircraft):
     assert not ours.warnings
 
 
+def test_residual_option_takes_badly_fitting_points_out_of_the_ooi_not_the_choice(aircraft):
+    sim, cloud = aircraft
+    base = make_config("ours", {"refine": {"enabled": False}})
+    a = segment(sim.capture, cloud, base)
+    assert "residual" not in a.counts  # an option (off in ours): BENCHMARKS, Session 38
+    # some OOI points fit their rays badly (the proxy's tracks all have error 0.5)
+    noisy = cloud.subset(np.arange(len(cloud)))
+    chosen = {tuple(p) for p in a.ooi_cloud.xyz}
+    ooi = np.array([i for i, p in enumerate(cloud.xyz) if tuple(p) in chosen])
+    bad = ooi[cloud.track_lengths()[ooi] >= 3][::10]  # 2-view points carry no such test
+    noisy.error = noisy.error.copy()
+    noisy.error[bad] = 10.0
+    opts = {"refine": {"enabled": False}, "residual": {"enabled": True}}
+    b = segment(sim.capture, noisy, make_config("ours", opts))
+    res = b.params["residual"]
+    assert res["dropped"] == len(bad) and res["dropped_ooi"] == len(bad)
+    # the point stages chose the same OOI; the bad points then left it
+    assert b.counts["noise"] == a.counts["noise"]
+    assert b.counts["residual"] == len(b.ooi_cloud) == len(a.ooi_cloud) - len(bad)
+    assert not {tuple(p) for p in b.ooi_cloud.xyz} & {tuple(p) for p in cloud.xyz[bad]}
+
+
 def test_an_ooi_of_few_points_warns(aircraft):
     sim, cloud = aircraft
     r = segment(sim.capture, cloud, make_config("ours", {"min_ooi_points": 10 ** 6,

@@ -1407,3 +1407,38 @@ def test_widening_warns_when_groups_apart_from_the_main_one_are_kept_at_the_wide
     # the object alone: nothing apart, no warning
     lone = noise_filter(bar, cfg, target, 2.0)[1]
     assert "warning" not in lone and lone["main_share"] == 1.0
+
+
+def _tracks_cloud(lengths, errors):
+    """A cloud of len(lengths) points whose point i is observed by views 0..lengths[i]-1."""
+    lengths = np.asarray(lengths, int)
+    ptr = np.r_[0, np.cumsum(lengths)].astype(np.int64)
+    ov = np.concatenate([np.arange(k) for k in lengths]).astype(np.int32)
+    n = len(lengths)
+    return SfmCloud(np.random.default_rng(0).normal(size=(n, 3)), np.zeros((n, 3), np.uint8),
+                    np.asarray(errors, float), ptr, ov, np.zeros((len(ov), 2), np.float32))
+
+
+def test_residual_stage_drops_multi_view_points_that_fit_their_rays_worse():
+    from ooi_seg_ros.seg.residual import ResidualConfig, dof_corrected_error, residual_filter
+    rng = np.random.default_rng(1)
+    lengths = np.r_[np.full(40, 2), rng.integers(3, 9, 60)]
+    errors = rng.uniform(0.2, 0.3, 100)
+    errors[:5] = 5.0  # 2-view points: no redundancy to judge by, kept whatever their error
+    errors[40:46] = 1.5  # 3+-view points far over twice the median: dropped
+    cloud = _tracks_cloud(lengths, errors)
+    keep, p = residual_filter(cloud, ResidualConfig(enabled=True))
+    assert set(range(100)) - set(keep.tolist()) == set(range(40, 46))
+    assert p["dropped"] == 6 and p["multi_view_points"] == 60
+    ce = dof_corrected_error(cloud)
+    assert np.isnan(ce[:40]).all()  # 2-view points carry no test
+    L = lengths[40:]  # the correction: a longer track's residual is a larger share of its noise
+    assert np.allclose(ce[40:], errors[40:] / np.sqrt((2 * L - 3) / (2 * L)))
+    assert p["threshold_error_dof"] == pytest.approx(2 * np.median(ce[40:]))
+    # off, without observations (a PLY) or with too few long tracks: every point stays
+    assert len(residual_filter(cloud, ResidualConfig(enabled=False))[0]) == 100
+    ply = SfmCloud.from_points(cloud.xyz)
+    assert len(residual_filter(ply, ResidualConfig(enabled=True))[0]) == 100
+    few = _tracks_cloud(np.r_[np.full(40, 2), np.full(5, 3)], np.r_[np.full(44, 0.2), 9.0])
+    keep, p = residual_filter(few, ResidualConfig(enabled=True))
+    assert len(keep) == 45 and "skipped" in p

@@ -67,6 +67,19 @@ def test_points_keep_colour_error_and_visibility(sim, built):
     assert cloud.rgb.dtype == np.uint8 and cloud.rgb.std() > 5  # real colours, not a constant
 
 
+def test_residual_stage_drops_the_points_off_the_surface(sim, built):
+    # the segmentation's first stage on a real SfM cloud: the multi-view points it drops
+    # (error per degree of freedom over twice the median) lie farther from the surface
+    from ooi_seg_ros.seg.residual import ResidualConfig, residual_filter
+    _, _, cloud = built
+    keep, p = residual_filter(cloud, ResidualConfig(enabled=True))
+    gone = np.setdiff1d(np.arange(len(cloud)), keep)
+    assert 0 < len(gone) < 0.3 * len(cloud) and p["dropped"] == len(gone)
+    multi_kept = keep[cloud.track_lengths()[keep] >= 3]
+    d = np.abs(sim.scene.distance_to_surface(cloud.xyz)) / sim.scene.summary()["scale"]
+    assert np.median(d[gone]) > 2 * np.median(d[multi_kept])
+
+
 def test_adding_keyframes_extends_the_cloud(built):
     sfm, half, full = built
     assert 0 < len(half) < len(full)

@@ -54,6 +54,7 @@ from .metrics import scene_metrics
 from .noise import NoiseConfig, noise_filter
 from .photo import background_planes
 from .refine import RefineConfig, refine_masks
+from .residual import ResidualConfig, residual_filter
 from .roi import RoiConfig, frame_radius, roi_filter
 from .stability import (StabilityConfig, centred_alternative, copies_choice,
                         stability_check, stability_warning)
@@ -71,6 +72,9 @@ class SegmentationConfig:
     min_ooi_points: int = 30  # an OOI of fewer points is kept, with a warning: masks drawn
     # from so few points are unreliable (the bicycle from 30 views: 15-27 points, IoU 0.34-0.39;
     # 30 pose-free photos at 256x192: 7 points, IoU 0.03; every 60-view capture: >= 100)
+    residual: ResidualConfig = field(default_factory=ResidualConfig)  # multi-view points
+    # that fit their rays worse than the cloud's typical track: out of the OOI cloud the
+    # point stages chose and out of the background's seeds
     roi: RoiConfig = field(default_factory=RoiConfig)  # camera-framing region of interest
     density: DensityConfig = field(default_factory=DensityConfig)  # 4.1 Monte Carlo KDE
     floor: FloorConfig = field(default_factory=FloorConfig)  # 4.2 floor removal
@@ -85,7 +89,7 @@ class SegmentationConfig:
 def preset(method: str) -> dict:
     """Stage options that define ``method`` (user overrides are applied on top)."""
     if method == "paper":
-        return {"method": "paper", "roi": {"enabled": False},
+        return {"method": "paper", "residual": {"enabled": False}, "roi": {"enabled": False},
                 "density": {"drop_fraction": 0.3, "first_peak": True},
                 "floor": {"mode": "paper"}, "noise": {"method": "dbscan", "select": "largest"},
                 "mesh": {"method": "poisson"},
@@ -362,6 +366,24 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         timings["stability"] = time.perf_counter() - t0
         if w:
             warnings.append(f"stability: {w}")
+    # an option (off in ours): points that belong to neither side -- multi-view points whose
+    # rays agree worse than the cloud's typical track (``residual.py``) -- leave the OOI cloud
+    # (its masks' splats and sure seeds) and the background's seeds, after the point stages
+    # chose the OOI from the whole cloud (thinning the cloud first moved their close choices)
+    neither = np.zeros(len(full), bool)
+    if cfg.residual.enabled:
+        t0 = time.perf_counter()
+        keep, params["residual"] = residual_filter(full, cfg.residual)
+        neither[:] = True
+        neither[keep] = False
+        ok = ~neither[sel]
+        params["residual"]["dropped_ooi"] = int((~ok).sum())
+        if ok.sum() >= 4 and not ok.all():
+            sel = sel[ok]
+            cloud = full.subset(sel)
+        counts["residual"] = int(len(cloud))
+        timings["residual"] = time.perf_counter() - t0
+        stage_clouds["residual"] = (cloud.xyz, cloud.rgb)
     if len(cloud) < cfg.min_ooi_points:
         warnings.append(f"only {len(cloud)} SfM points form the OOI (fewer than "
                         f"{cfg.min_ooi_points}): masks drawn from so few points are unreliable "
@@ -384,7 +406,7 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
     timings["masks"] = time.perf_counter() - t0
     if cfg.refine.enabled:
         t0 = time.perf_counter()
-        removed = np.ones(len(full), bool)
+        removed = ~neither
         removed[sel] = False
         fp = params.get("floor", {})
         plane = None

@@ -1,0 +1,78 @@
+"""Optional stage: points whose track fits its rays worse than the cloud's typical track.
+
+A point seen by 3+ cameras has more measurements (2 per observation) than unknowns (3), so its
+reprojection error says how well its rays agree. A track chained through one wrong match (a
+feature of the background matched to one of the object, a repeated texture) fits its rays
+worse than the surface's points and lies off the surface -- in front of the object in some
+views, beside it in others, where each such point seeds a false blob of object in the masks.
+On the simulator's captures (session 38) the 3-view points of the OOI cloud lying off the
+surface had 3x the median error of those on it (aircraft, 120 views: 0.64 vs 0.21 px), and a
+denser capture makes more of them: they grow faster than the surface's points.
+
+The test is relative to the cloud itself, so it carries no pixel threshold: the error is
+corrected for its degrees of freedom (2L measurements - 3 unknowns; a 3-view point fits its
+rays more loosely than a 10-view one with the same image noise) and compared with the median
+of the cloud's 3+-view points. 2-view points carry no such evidence (two rays always meet
+after refinement up to the epipolar error) and are left alone, as are clouds without
+observations or errors (a PLY). The median comes from the whole cloud; the points it rejects
+leave the OOI cloud the point stages chose (its splatted masks and GrabCut's sure seeds) and
+the background's seeds. It runs after the point stages, not before: removing 10-20% of the
+cloud first moved their close decisions (the tabletop of seed 3 merged a neighbour at 60 views,
+IoU 0.936 -> 0.858), and the OOI choice is not where these points do harm.
+
+Not on in ``ours``: it recovers about half of what a denser capture (120 views) loses, but
+the surface's own badly fitting points go with the stray ones, and on a sparse OOI cloud they
+are the only points of a part (the stool of seed 1 at 60 views: 31 -> 20 OOI points, IoU
+0.872 -> 0.712). Keeping the points no kept point lies near keeps the sparse parts and loses
+the gain: the stray points are the isolated ones (BENCHMARKS, Segmentation > Session 38).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.types import SfmCloud
+
+
+@dataclass
+class ResidualConfig:
+    """Options of the reprojection-error test of the multi-view points."""
+
+    enabled: bool = False  # the paper has no such stage; an option in ``ours`` (module doc)
+    factor: float = 2.0  # drop 3+-view points whose error per degree of freedom exceeds this x
+    # the median 3+-view point's (2 and 3 measured: BENCHMARKS, Segmentation > Session 38)
+    min_tracks: int = 10  # fewer 3+-view points than this: no reliable median, keep all
+
+
+def dof_corrected_error(cloud: SfmCloud) -> np.ndarray:
+    """Mean reprojection error [N] scaled to one degree of freedom (NaN for tracks under 3).
+
+    The least-squares residual of a point seen L times has 2L - 3 degrees of freedom among
+    2L measurements: its expected size shrinks by sqrt((2L - 3) / 2L) with the same noise.
+    """
+    L = cloud.track_lengths().astype(float)
+    err = np.asarray(cloud.error, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = err / np.sqrt((2 * L - 3) / (2 * L))
+    return np.where(L >= 3, out, np.nan)
+
+
+def residual_filter(cloud: SfmCloud, cfg: ResidualConfig) -> tuple[np.ndarray, dict]:
+    """Indices of the points to keep and the parameters used (median, counts)."""
+    n = len(cloud)
+    keep_all = np.arange(n)
+    ce = dof_corrected_error(cloud)
+    multi = np.isfinite(ce) & (ce > 0)
+    params: dict = {"factor": float(cfg.factor), "multi_view_points": int(multi.sum())}
+    if not cfg.enabled or cfg.factor <= 0:
+        return keep_all, dict(params, skipped="disabled")
+    if multi.sum() < max(int(cfg.min_tracks), 1):
+        # no observations (a PLY), no errors, or too few long tracks to judge by
+        return keep_all, dict(params, skipped="too few 3+-view points with an error")
+    med = float(np.median(ce[multi]))
+    bad = multi & (ce > cfg.factor * med)
+    params.update({"median_error_dof": med, "threshold_error_dof": float(cfg.factor * med),
+                   "dropped": int(bad.sum())})
+    return np.nonzero(~bad)[0], params
