@@ -46,6 +46,14 @@ def test_residual_option_takes_badly_fitting_points_out_of_the_ooi_not_the_choic
     assert b.counts["noise"] == a.counts["noise"]
     assert b.counts["residual"] == len(b.ooi_cloud) == len(a.ooi_cloud) - len(bad)
     assert not {tuple(p) for p in b.ooi_cloud.xyz} & {tuple(p) for p in cloud.xyz[bad]}
+    # with the colour gate, suspect points whose colour the views repeat stay (the proxy's
+    # points lie on the surface, so most do)
+    opts["residual"]["colour_factor"] = 2.0
+    c = segment(sim.capture, noisy, make_config("ours", opts))
+    res = c.params["residual"]
+    assert res["kept_consistent"] > len(bad) / 2
+    assert res["dropped_ooi"] == len(bad) - res["kept_consistent"]
+    assert len(c.ooi_cloud) == len(a.ooi_cloud) - res["dropped_ooi"]
 
 
 def test_an_ooi_of_few_points_warns(aircraft):

@@ -1442,3 +1442,17 @@ def test_residual_stage_drops_multi_view_points_that_fit_their_rays_worse():
     few = _tracks_cloud(np.r_[np.full(40, 2), np.full(5, 3)], np.r_[np.full(44, 0.2), 9.0])
     keep, p = residual_filter(few, ResidualConfig(enabled=True))
     assert len(keep) == 45 and "skipped" in p
+
+
+def test_colour_mismatch_is_the_median_difference_over_the_views_framing_a_point():
+    from ooi_seg_ros.seg.residual import colour_mismatch
+    views = _ring_views(n=6)
+    for k, v in enumerate(views):  # a red scene, except view 0 which is green
+        v.image = np.zeros((48, 64, 3), np.uint8)
+        v.image[..., 1 if k == 0 else 0] = 200
+    xyz = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 100]])  # the last is framed by none
+    rgb = np.array([[200, 0, 0], [0, 0, 200], [200, 0, 0]])
+    mis = colour_mismatch(xyz, rgb, views)
+    assert mis[0] == 0  # red in 5 of 6 views: the median difference is 0
+    assert mis[1] == 200  # blue where every view shows red (or green)
+    assert np.isnan(mis[2])

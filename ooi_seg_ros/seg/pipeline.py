@@ -54,7 +54,7 @@ from .metrics import scene_metrics
 from .noise import NoiseConfig, noise_filter
 from .photo import background_planes
 from .refine import RefineConfig, refine_masks
-from .residual import ResidualConfig, residual_filter
+from .residual import ResidualConfig, colour_mismatch, residual_filter
 from .roi import RoiConfig, frame_radius, roi_filter
 from .stability import (StabilityConfig, centred_alternative, copies_choice,
                         stability_check, stability_warning)
@@ -377,6 +377,15 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         neither[:] = True
         neither[keep] = False
         ok = ~neither[sel]
+        if cfg.residual.colour_factor > 0 and (~ok).any() and ok.sum() >= 4:
+            mis = colour_mismatch(full.xyz[sel], full.rgb[sel], views)
+            ref = float(np.nanmedian(mis[ok])) if np.isfinite(mis[ok]).any() else np.nan
+            if np.isfinite(ref):
+                stay = ~ok & ~(mis > cfg.residual.colour_factor * ref)  # NaN stays
+                ok |= stay
+                neither[sel[stay]] = False
+                params["residual"].update({"colour_median": ref,
+                                           "kept_consistent": int(stay.sum())})
         params["residual"]["dropped_ooi"] = int((~ok).sum())
         if ok.sum() >= 4 and not ok.all():
             sel = sel[ok]

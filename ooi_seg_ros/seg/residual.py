@@ -24,7 +24,10 @@ Not on in ``ours``: it recovers about half of what a denser capture (120 views) 
 the surface's own badly fitting points go with the stray ones, and on a sparse OOI cloud they
 are the only points of a part (the stool of seed 1 at 60 views: 31 -> 20 OOI points, IoU
 0.872 -> 0.712). Keeping the points no kept point lies near keeps the sparse parts and loses
-the gain: the stray points are the isolated ones (BENCHMARKS, Segmentation > Session 38).
+the gain: the stray points are the isolated ones. ``colour_factor`` keeps the suspects whose
+colour the views repeat (a stray point lands on background in many of the views framing it):
+at 60 views within 0.005 of the default's means (stool seed 1 0.852), at 120 views two thirds
+of the aircraft's gain (BENCHMARKS, Segmentation > Session 38).
 """
 
 from __future__ import annotations
@@ -33,7 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.types import SfmCloud
+from ..core.types import SfmCloud, View
+from .masks import project_distorted
 
 
 @dataclass
@@ -43,6 +47,11 @@ class ResidualConfig:
     enabled: bool = False  # the paper has no such stage; an option in ``ours`` (module doc)
     factor: float = 2.0  # drop 3+-view points whose error per degree of freedom exceeds this x
     # the median 3+-view point's (2 and 3 measured: BENCHMARKS, Segmentation > Session 38)
+    colour_factor: float = 0.0  # > 0: a suspect OOI point leaves only when the pixels it
+    # projects to in the views framing it differ from its own colour (median over the views
+    # of the largest channel difference) by more than this x the same median of the kept OOI
+    # points: a stray point lands on background in many views, the only point of a thin part
+    # lands on that part (0 = off)
     min_tracks: int = 10  # fewer 3+-view points than this: no reliable median, keep all
 
 
@@ -76,3 +85,28 @@ def residual_filter(cloud: SfmCloud, cfg: ResidualConfig) -> tuple[np.ndarray, d
     params.update({"median_error_dof": med, "threshold_error_dof": float(cfg.factor * med),
                    "dropped": int(bad.sum())})
     return np.nonzero(~bad)[0], params
+
+
+def colour_mismatch(xyz: np.ndarray, rgb: np.ndarray, views: list[View]) -> np.ndarray:
+    """Median [N] over the views framing each point of the largest channel difference between
+    the pixel it projects to and its own colour (NaN where no view frames it)."""
+    xyz = np.asarray(xyz, float).reshape(-1, 3)
+    col = np.asarray(rgb, float).reshape(-1, 3)
+    diffs = np.full((len(views), len(xyz)), np.nan, np.float32)
+    for i, v in enumerate(views):
+        uv, z = project_distorted(xyz, v.camera, v.pose)
+        ui, vi = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        c = v.camera
+        ok = (z > 1e-9) & (ui >= 0) & (ui < c.width) & (vi >= 0) & (vi < c.height)
+        if not ok.any():
+            continue
+        img = v.get_image()
+        px = img[vi[ok].astype(int), ui[ok].astype(int)].astype(float)
+        if px.ndim == 1:  # a grey image
+            px = px[:, None]
+        diffs[i, ok] = np.abs(px - col[ok][:, :px.shape[1]]).max(axis=1)
+    out = np.full(len(xyz), np.nan)
+    seen = np.isfinite(diffs).any(axis=0)  # nanmedian warns on an all-NaN column
+    if seen.any():
+        out[seen] = np.nanmedian(diffs[:, seen], axis=0)
+    return out
