@@ -603,6 +603,31 @@ def test_merge_reach_scale_takes_a_part_just_past_the_core_not_a_neighbour():
     assert (k2 >= 2150).sum() == 0 and p["chosen_clusters"] == 2
 
 
+def test_grabcut_band_reaches_more_gaps_where_the_seeds_are_sparse():
+    """``refine.band_gaps``: the "probably background" band is at least that many mean gaps
+    between the view's object seeds (sqrt(silhouette area / seeds in it)). A disc of 120 px
+    with 16 seeds (gap ~26 px) gets 3 gaps; with 900 seeds (gap ~3.5 px) it keeps the
+    fraction's 18 px; seeds outside the silhouette or the frame do not count; 0 = off."""
+    from ooi_seg_ros.seg.refine import RefineConfig, _band_px
+    yy, xx = np.mgrid[0:240, 0:320]
+    m = (xx - 160) ** 2 + (yy - 120) ** 2 < 60 ** 2
+    area = m.sum()
+    g = np.linspace(-40, 40, 4)
+    sparse = np.stack(np.meshgrid(160 + g, 120 + g), -1).reshape(-1, 2)
+    dense = np.stack(np.meshgrid(160 + np.linspace(-40, 40, 30),
+                                 120 + np.linspace(-40, 40, 30)), -1).reshape(-1, 2)
+    off = RefineConfig(band_fraction=0.15)
+    on = RefineConfig(band_fraction=0.15, band_gaps=3.0)
+    assert _band_px(m, sparse, off) == (int(0.15 * 119), False)
+    band, wider = _band_px(m, sparse, on)
+    assert wider and band == int(round(3.0 * np.sqrt(area / 16)))
+    assert _band_px(m, dense, on) == (int(0.15 * 119), False)
+    # seeds outside the silhouette or outside the frame are not the silhouette's samples
+    extra = np.array([[10.0, 10.0], [-50.0, 120.0], [160.0, 900.0]])
+    assert _band_px(m, np.concatenate([sparse, extra]), on) == (band, True)
+    assert _band_px(m, np.zeros((0, 2)), on) == (int(0.15 * 119), False)
+
+
 def test_edge_matte_grows_an_eroded_mask_to_the_half_coverage_outline():
     """A two-colour disc with an anti-aliased outline: a mask one pixel inside the truth
     (coverage >= 0.5) grows back onto it, and nothing far from the outline is added."""

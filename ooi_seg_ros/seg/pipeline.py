@@ -110,7 +110,7 @@ def preset(method: str) -> dict:
                           "splat_scale": 0.6, "hull_consistency": False,
                           "hull_carve": False},
                 "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
-                           "max_side": 400, "hull_add": True,
+                           "max_side": 400, "band_gaps": 3.0, "hull_add": True,
                            "upsample": 2, "hull_cut_grown": True,
                            "border_leak_hull": True, "hull_thin_agree": 0.3,
                            "hull_thin_distinct": 4, "behind_cut": "mask",

@@ -40,6 +40,11 @@ class RefineConfig:
     enabled: bool = False  # run the refinement (needs opencv-python-headless)
     iterations: int = 4  # GrabCut iterations per view
     band_fraction: float = 0.15  # "probably background" band width, fraction of the mask size
+    band_gaps: float = 0.0  # the band is at least this many mean gaps between the view's object
+    # seeds (sqrt(silhouette area / seeds in it)): where the OOI cloud is sparse, parts no point
+    # lies on reach further past the silhouette; 0 = the fraction alone (see ``_band_px``).
+    # 3 in ``ours`` since session 39 (BENCHMARKS, Segmentation > Session 39: stool 8 seeds
+    # 0.890 / 0.960 -> 0.900 / 0.976; the dense scenes' bands are not widened)
     seed_radius: int = 1  # radius in px of the sure seeds drawn at observations
     max_side: int = 256  # crops larger than this are refined at reduced resolution
     max_area_change: float = 0.5  # reject results that grow/shrink the mask by more than this
@@ -207,19 +212,46 @@ def _draw(seed: np.ndarray, xy: np.ndarray, r: int, box: tuple, scale: float) ->
             seed[vv[ok], uu[ok]] = True
 
 
+def _band_px(m: np.ndarray, fg_xy: np.ndarray, cfg: RefineConfig) -> tuple[int, bool]:
+    """Width in px of the "probably background" band around the silhouette ``m``, and
+    whether ``band_gaps`` widened it.
+
+    ``band_fraction`` of the silhouette's larger side, and with ``band_gaps`` > 0 at least that
+    many mean gaps between the object seeds inside the silhouette: a silhouette splatted from a
+    few points misses parts (a frond, a handle) that lie between or beyond its samples, about a
+    gap or more from the nearest one, and GrabCut can only add pixels inside the band. The gap
+    is a property of the cloud's density in this view, so dense clouds keep the fraction.
+    """
+    ys, xs = np.nonzero(m)
+    size = max(np.ptp(ys), np.ptp(xs)) + 1
+    band = base = max(3, int(cfg.band_fraction * size))
+    if cfg.band_gaps > 0 and len(fg_xy):
+        u = np.rint(fg_xy[:, 0]).astype(int)
+        v = np.rint(fg_xy[:, 1]).astype(int)
+        H, W = m.shape
+        ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        n = int(m[v[ok], u[ok]].sum())
+        if n:
+            band = max(band, int(round(cfg.band_gaps * np.sqrt(len(ys) / n))))
+    return band, band > base
+
+
 def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[np.ndarray],
                   bg_xy: list[np.ndarray], cfg: RefineConfig,
                   floor: Optional[PlaneConsistency] = None, floor_cache: Optional[dict] = None,
-                  models: Optional[dict] = None) -> tuple[dict, int, int]:
+                  models: Optional[dict] = None, stats: Optional[dict] = None
+                  ) -> tuple[dict, int, int]:
     """One GrabCut pass over every view with the given seed pixels; (masks, refined, rejected).
 
     ``floor`` (optional) marks the crop's pixels that show the support plane as sure
     background; ``floor_cache`` keeps those maps between passes (keyed by view and crop).
     ``models`` (optional) receives, per view GrabCut ran on, its colour models and where the
     plane check found background: {key: (bgd [1,65], fgd [1,65], full-frame bool [H,W])}.
+    ``stats`` (optional) receives ``band_widened``: the views whose band ``band_gaps`` widened.
     """
     import cv2
     out, refined, rejected = {}, 0, 0
+    widened = 0
     floor_cache = {} if floor_cache is None else floor_cache
     for j, v in enumerate(views):
         if v.key not in masks:  # a context view only (neighbour of the plane check)
@@ -229,8 +261,8 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
             out[v.key] = m
             continue
         ys, xs = np.nonzero(m)
-        size = max(np.ptp(ys), np.ptp(xs)) + 1
-        band = max(3, int(cfg.band_fraction * size))
+        band, wider = _band_px(m, np.asarray(fg_xy[j], float).reshape(-1, 2), cfg)
+        widened += wider
         H, W = m.shape
         box = (max(0, ys.min() - band), min(H, ys.max() + band + 1),
                max(0, xs.min() - band), min(W, xs.max() + band + 1))
@@ -373,6 +405,8 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         full[box[0]:box[1], box[2]:box[3]] = res
         out[v.key] = full
         refined += 1
+    if stats is not None:
+        stats["band_widened"] = int(widened)
     return out, refined, rejected
 
 
@@ -1058,6 +1092,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     """
     if not 0.0 <= float(cfg.edge_alpha) <= 1.0:
         raise ValueError(f"refine.edge_alpha={cfg.edge_alpha}; it is a coverage in [0, 1]")
+    if not (np.isfinite(float(cfg.band_gaps)) and float(cfg.band_gaps) >= 0.0):
+        raise ValueError(f"refine.band_gaps={cfg.band_gaps}; 0 (off) or a number of gaps > 0")
     if cfg.hull_graph not in ("compressed", "on", "off"):
         raise ValueError(f"refine.hull_graph={cfg.hull_graph!r}; use compressed, on or off")
     if cfg.hull_add and not (0.0 <= float(cfg.hull_agree) < 1.0 and cfg.hull_voxel_px > 0):
@@ -1105,7 +1141,7 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     models: Optional[dict] = {} if cfg.hull_add else None
     if cfg.fg_seeds == "observations":
         out, refined, rejected = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg, floor, cache,
-                                               models)
+                                               models, params)
     elif cfg.fg_seeds in ("projections", "consistent"):
         xyz = ooi.xyz
         if cfg.fg_seeds == "consistent":
@@ -1117,7 +1153,7 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
               else np.zeros((0, 2), np.float32) for v in views]
         init = first if cfg.fg_seeds == "consistent" and cfg.second_init == "first" else masks
         out, refined, rejected = _grabcut_pass(init, views, fg, bg_obs, cfg, floor, cache,
-                                               models)
+                                               models, params)
     else:
         raise ValueError(f"refine.fg_seeds={cfg.fg_seeds!r}; use observations, projections "
                          f"or consistent")
