@@ -306,6 +306,39 @@ def test_a_sparse_object_cloud_widens_the_grabcut_band_and_keeps_more_of_the_obj
         segment(sim.capture, sparse, make_config("ours", {"refine": {"band_gaps": -1.0}}))
 
 
+def test_thinning_the_seeds_of_a_dense_cloud_with_stray_points_raises_precision():
+    """``refine.seed_cover`` (0.5625 in ``ours``): each OOI point off the object seeds a false
+    blob of its own while the object's many seeds overlap, so where the seeds' discs would
+    cover more of the image around them than that share, they are drawn at random down to it.
+    A dense cloud (tabletop proxy, 600 points per view) with a tenth of the points near the
+    object moved off its surface by a tenth of its radius (as mis-triangulated points are):
+    precision and IoU up by over 0.02, recall within 0.02, every view's seeds thinned and
+    counted in the report."""
+    import dataclasses
+    sim = simulate_capture("tabletop", n_views=12, width=320, height=240, seed=0)
+    cloud = depth_proxy_cloud(sim, 600, seed=0)
+    gt = np.asarray(sim.capture.gt_ooi_points)
+    c = gt.mean(0)
+    rad = np.percentile(np.linalg.norm(gt - c, axis=1), 95)
+    near = np.nonzero(np.linalg.norm(cloud.xyz - c, axis=1) < rad)[0]
+    rng = np.random.default_rng(1)
+    pick = rng.choice(near, len(near) // 10, replace=False)
+    d = rng.normal(size=(len(pick), 3))
+    xyz = cloud.xyz.copy()
+    xyz[pick] += 0.1 * rad * d / np.linalg.norm(d, axis=1, keepdims=True)
+    stray = dataclasses.replace(cloud, xyz=xyz)
+    every = segment(sim.capture, stray, make_config("ours", {"refine": {"seed_cover": 0.0}}))
+    thin = segment(sim.capture, stray, make_config("ours"))
+    assert make_config("ours").refine.seed_cover == 0.5625
+    assert every.params["refine"]["seeds_thinned"] == 0
+    assert thin.params["refine"]["seeds_thinned"] == len(sim.capture.views)
+    a, b = every.metrics["mean"], thin.metrics["mean"]
+    assert b["precision"] > a["precision"] + 0.02 and b["iou"] > a["iou"] + 0.02, (a, b)
+    assert b["recall"] > a["recall"] - 0.02, (a, b)
+    with pytest.raises(ValueError, match="seed_cover"):
+        segment(sim.capture, stray, make_config("ours", {"refine": {"seed_cover": 1.5}}))
+
+
 def test_grabcut_iterations_split_between_the_crop_and_the_enlarged_crop():
     """``refine.enlarged_iterations``: the first GrabCut iterations on the crop at its own
     size, the rest (or, at 0, one cut with frozen colour models) on the enlarged crop. Each

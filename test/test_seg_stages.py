@@ -628,6 +628,41 @@ def test_grabcut_band_reaches_more_gaps_where_the_seeds_are_sparse():
     assert _band_px(m, np.zeros((0, 2)), on) == (int(0.15 * 119), False)
 
 
+def test_dense_object_seeds_are_thinned_at_random_to_the_share_they_may_cover():
+    """``refine.seed_cover``: where the sure object seeds' discs (side 3 at radius 1) would
+    cover more than that share of the image around them, each is kept with the probability
+    that brings the cover there to the share. A silhouette dense on its left half (gap 2 px:
+    thinned to about 1 in 4 there) and sparse on its right (gap 8 px: every seed kept); the
+    seeds outside the silhouette are all kept, the pick depends only on the seed given, and
+    0 is off."""
+    from ooi_seg_ros.seg.refine import _thin_seeds
+    yy, xx = np.mgrid[0:240, 0:320]
+    m = (xx - 160) ** 2 + (yy - 120) ** 2 < 80 ** 2
+    dense = np.stack(np.meshgrid(np.arange(100.0, 160.0, 2.0),
+                                 np.arange(80.0, 160.0, 2.0)), -1).reshape(-1, 2)
+    sparse = np.stack(np.meshgrid(np.arange(176.0, 224.0, 8.0),
+                                  np.arange(80.0, 160.0, 8.0)), -1).reshape(-1, 2)
+    outside = np.array([[10.0, 10.0], [300.0, 230.0], [-5.0, 100.0]])
+    xy = np.concatenate([dense, sparse, outside])
+    out = _thin_seeds(xy, m, 0.5625, 1, 7)  # target gap 3 / 0.75 = 4 px
+    assert {tuple(p) for p in out} <= {tuple(p) for p in xy}  # a subset, not new points
+    kept = {tuple(p) for p in out}
+    left = sum(tuple(p) in kept for p in dense) / len(dense)
+    assert 0.15 < left < 0.45, left  # (2 / 4)^2 = 1/4 deep inside, more near its edges
+    assert all(tuple(p) in kept for p in sparse)
+    assert np.array_equal(out[-3:], outside)  # kept, in their order
+    # spread over the dense part, not a cluster: each quarter of it keeps some
+    d = np.array([p for p in dense if tuple(p) in kept])
+    quad = np.bincount((d[:, 0] >= 130) * 2 + (d[:, 1] >= 120), minlength=4)
+    assert quad.min() > 0.15 * len(d), quad
+    assert np.array_equal(out, _thin_seeds(xy, m, 0.5625, 1, 7))  # reproducible
+    assert not np.array_equal(out, _thin_seeds(xy, m, 0.5625, 1, 8))
+    assert np.array_equal(_thin_seeds(sparse, m, 0.5625, 1, 7), sparse)
+    assert np.array_equal(_thin_seeds(xy, m, 0.0, 1, 7), xy)
+    # larger discs: the same cover is reached with fewer seeds
+    assert len(_thin_seeds(xy, m, 0.5625, 2, 7)) < len(out)
+
+
 def test_edge_matte_grows_an_eroded_mask_to_the_half_coverage_outline():
     """A two-colour disc with an anti-aliased outline: a mask one pixel inside the truth
     (coverage >= 0.5) grows back onto it, and nothing far from the outline is added."""

@@ -45,6 +45,11 @@ class RefineConfig:
     # lies on reach further past the silhouette; 0 = the fraction alone (see ``_band_px``).
     # 3 in ``ours`` since session 39 (BENCHMARKS, Segmentation > Session 39: stool 8 seeds
     # 0.890 / 0.960 -> 0.900 / 0.976; the dense scenes' bands are not widened)
+    seed_cover: float = 0.0  # where the discs of the view's sure object seeds would cover more
+    # than this share of the image around them, each is drawn with the probability that brings
+    # it down to the share (``_thin_seeds``); 0 = every seed. 0.5625 in ``ours`` since session
+    # 40 (BENCHMARKS, Segmentation > Session 40: each stray OOI point seeds a false blob; 120
+    # views aircraft 0.887 / 0.896 -> 0.899 / 0.907, tabletop 0.899 / 0.899 -> 0.909 / 0.910)
     seed_radius: int = 1  # radius in px of the sure seeds drawn at observations
     max_side: int = 256  # crops larger than this are refined at reduced resolution
     max_area_change: float = 0.5  # reject results that grow/shrink the mask by more than this
@@ -236,6 +241,46 @@ def _band_px(m: np.ndarray, fg_xy: np.ndarray, cfg: RefineConfig) -> tuple[int, 
     return band, band > base
 
 
+def _thin_seeds(xy: np.ndarray, m: np.ndarray, cover: float, radius: int, seed: int
+                ) -> np.ndarray:
+    """The object seeds ``xy`` [k,2] to draw in a view with silhouette ``m``: where their
+    discs (side 2 ``radius`` + 1) would cover more than ``cover`` of the image around them,
+    each is drawn with the probability that brings the cover there down to ``cover``. The
+    local cover is counted within two target gaps of the seed (target gap = side /
+    sqrt(cover)), so sparse parts (a dark stand with few features) keep every seed; seeds
+    outside the silhouette are all kept.
+
+    Each OOI point that is not on the object seeds a false blob of its own, while the true
+    points' discs overlap: once the seeds are dense enough to cover much of the silhouette,
+    more of them add stray blobs and no object (BENCHMARKS, Segmentation > Session 40).
+    Random, not spatial, thinning: a stray point is alone where it lies and would survive a
+    per-cell pick."""
+    if cover <= 0 or not len(xy):
+        return xy
+    from scipy.spatial import cKDTree
+    H, W = m.shape
+    u = np.rint(xy[:, 0]).astype(int)
+    v = np.rint(xy[:, 1]).astype(int)
+    ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    inside = np.zeros(len(xy), bool)
+    inside[ok] = m[v[ok], u[ok]]
+    idx = np.nonzero(inside)[0]
+    if len(idx) < 2:
+        return xy
+    side = 2 * int(radius) + 1
+    gap = side / np.sqrt(cover)
+    r = 2.0 * gap
+    pts = xy[idx]
+    count = cKDTree(pts).query_ball_point(pts, r, return_length=True)
+    p = np.minimum(1.0, np.pi * r * r / (np.maximum(count, 1) * gap * gap))
+    drop = idx[np.random.default_rng(seed).random(len(idx)) >= p]
+    if not len(drop):
+        return xy
+    sel = np.ones(len(xy), bool)
+    sel[drop] = False
+    return xy[sel]
+
+
 def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[np.ndarray],
                   bg_xy: list[np.ndarray], cfg: RefineConfig,
                   floor: Optional[PlaneConsistency] = None, floor_cache: Optional[dict] = None,
@@ -247,11 +292,12 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
     background; ``floor_cache`` keeps those maps between passes (keyed by view and crop).
     ``models`` (optional) receives, per view GrabCut ran on, its colour models and where the
     plane check found background: {key: (bgd [1,65], fgd [1,65], full-frame bool [H,W])}.
-    ``stats`` (optional) receives ``band_widened``: the views whose band ``band_gaps`` widened.
+    ``stats`` (optional) receives ``band_widened``: the views whose band ``band_gaps`` widened,
+    and ``seeds_thinned``: the views whose object seeds ``seed_cover`` thinned.
     """
     import cv2
     out, refined, rejected = {}, 0, 0
-    widened = 0
+    widened = thinned = 0
     floor_cache = {} if floor_cache is None else floor_cache
     for j, v in enumerate(views):
         if v.key not in masks:  # a context view only (neighbour of the plane check)
@@ -284,7 +330,13 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         bg_seed = np.zeros(crop_s.shape, bool)
         fg_seed = np.zeros(crop_s.shape, bool)
         _draw(bg_seed, bg_xy[j], cfg.seed_radius, box, scale)
-        _draw(fg_seed, fg_xy[j], cfg.seed_radius, box, scale)
+        fxy = np.asarray(fg_xy[j], float).reshape(-1, 2)
+        if cfg.seed_cover > 0:
+            n0 = len(fxy)
+            fxy = _thin_seeds(fxy, m, cfg.seed_cover, cfg.seed_radius,
+                              int(cfg.seed) * 100003 + j)
+            thinned += len(fxy) < n0
+        _draw(fg_seed, fxy, cfg.seed_radius, box, scale)
         if cfg.voronoi and fg_seed.any() and bg_seed.any():
             # silhouette pixels nearer a background observation than any object seed start
             # as "probably background": the discs' halo over the floor does not train the
@@ -407,6 +459,7 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         refined += 1
     if stats is not None:
         stats["band_widened"] = int(widened)
+        stats["seeds_thinned"] = int(thinned)
     return out, refined, rejected
 
 
@@ -1094,6 +1147,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         raise ValueError(f"refine.edge_alpha={cfg.edge_alpha}; it is a coverage in [0, 1]")
     if not (np.isfinite(float(cfg.band_gaps)) and float(cfg.band_gaps) >= 0.0):
         raise ValueError(f"refine.band_gaps={cfg.band_gaps}; 0 (off) or a number of gaps > 0")
+    if not (np.isfinite(float(cfg.seed_cover)) and 0.0 <= float(cfg.seed_cover) <= 1.0):
+        raise ValueError(f"refine.seed_cover={cfg.seed_cover}; 0 (off) or a share in (0, 1]")
     if cfg.hull_graph not in ("compressed", "on", "off"):
         raise ValueError(f"refine.hull_graph={cfg.hull_graph!r}; use compressed, on or off")
     if cfg.hull_add and not (0.0 <= float(cfg.hull_agree) < 1.0 and cfg.hull_voxel_px > 0):
