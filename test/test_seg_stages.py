@@ -6,7 +6,7 @@ from scipy import ndimage
 
 from ooi_seg_ros.core.geometry import look_at
 from ooi_seg_ros.core.types import CameraIntrinsics, SfmCloud, View
-from ooi_seg_ros.seg.density import DensityConfig, density_filter, monte_carlo_density
+from ooi_seg_ros.seg.density import DensityConfig, density_filter, monte_carlo_density, spacing
 from ooi_seg_ros.seg.floor import FloorConfig, floor_filter
 from ooi_seg_ros.seg.masks import (MaskConfig, mesh_masks, point_masks, project_distorted,
                                    undistorted_dirs)
@@ -1467,6 +1467,36 @@ def test_widening_warns_when_groups_apart_from_the_main_one_are_kept_at_the_wide
     # the object alone: nothing apart, no warning
     lone = noise_filter(bar, cfg, target, 2.0)[1]
     assert "warning" not in lone and lone["main_share"] == 1.0
+
+
+def test_retreat_keeps_the_set_from_before_a_neighbour_chained_to_it_before_it_settled():
+    """A denser capture can chain a neighbour to the object at the first widening step, before
+    the set settles (the toy car of seed 1 at 120 views: IoU 0.40, warned). With ``retreat``
+    the warning's signs (no step refused, groups apart at the widest eps) and a step before
+    settling that moved the extent out past ``max_extent_growth`` x and off the convergence
+    point make the stage keep the set from before that step -- and say so."""
+    bar = _box(3000, (-0.3, -0.025, 0.0), (0.3, 0.025, 0.05), seed=1)  # the object
+    target = np.array([0.0, 0.0, 0.025])
+    sp = spacing(bar, 8)
+    x0 = 0.3 + 1.1 * sp  # a neighbour 1.1 spacings beyond the bar's end: chained at 1.25
+    neighbour = _box(3000, (x0, -0.025, 0.0), (x0 + 0.6, 0.025, 0.05), seed=5)
+    h = np.sqrt(400 / 3000 * 0.6 * 0.05) / 2  # two groups apart, within the bar's reach
+    groups = [_box(400, (-h, y - h, 0.0), (h, y + h, 0.05), seed=2 + i)
+              for i, y in enumerate((0.2, -0.2))]
+    xyz = np.vstack([bar, neighbour] + groups)
+    base = dict(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=4.0,
+                settle_change=0.15, max_extent_growth=1.25, merge_reach_scale=1.2)
+    k, p = noise_filter(xyz, NoiseConfig(**base), target, 0.4)
+    assert ((k >= 3000) & (k < 6000)).sum() == 3000 and "neighbouring object" in p["warning"]
+    k, p = noise_filter(xyz, NoiseConfig(**base, retreat=True), target, 0.4)
+    assert ((k >= 3000) & (k < 6000)).sum() < 50 and (k < 3000).sum() > 0.9 * 3000
+    assert p["retreated_from_scale"] == 1.25 and p["eps_scale"] == 1.0
+    assert "kept instead" in p["warning"] and "1.25 spacings" in p["warning"]
+    # the object alone, and the warning's case of groups apart with no jump: unchanged
+    for cloud in (bar, np.vstack([bar] + groups)):
+        a = noise_filter(cloud, NoiseConfig(**base), target, 0.4)
+        b = noise_filter(cloud, NoiseConfig(**base, retreat=True), target, 0.4)
+        assert np.array_equal(a[0], b[0]) and "retreated_from_scale" not in b[1]
 
 
 def _tracks_cloud(lengths, errors):

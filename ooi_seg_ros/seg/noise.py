@@ -71,6 +71,20 @@ without a refusal and with anything apart was an impure toy car (9.5-29% apart, 
 flagged. 5% lies between the two, read off these clouds: a fitted constant. A neighbour
 chained to the object with nothing beyond it inside the reach shows nothing here (toy car,
 8 views, seed 6: purity 0.77, no warning): the warning is a sign, not a guarantee.
+
+``retreat`` (on in ``ours``) acts on that sign when the ladder also shows where the chain
+happened. A denser capture chains the same way: the toy car of seed 1 at 120 views is in 44
+fragments at 1 spacing (its 98% extent 0.13, the set centred on the convergence point,
+off-centre 0.03), and at 1.25 spacings the clutter beside it joins (extent x2.1, off-centre
+0.26) before the set has settled, when every step is accepted (IoU 0.40, warned). A part
+that joins before settling either centres the set (the aircraft's wings, the bicycle's
+other half) or is held up by it (``part_above``); a neighbour standing beside the object
+does neither. So the stage remembers the first step before settling that moved the extent
+past ``max_extent_growth`` x the previous step's, moved the set's box off the convergence
+point and held nothing up, and when the widening then ends with the warning's signs, it
+keeps the set from before that step (the toy car: IoU 0.963, recall 0.978) and the warning
+says what it kept. The same step with no warning's signs is taken as it was: the rule only
+turns a reported failure into a correction, and adds no constant of its own.
 """
 
 from __future__ import annotations
@@ -126,6 +140,10 @@ class NoiseConfig:
     # without refusing a step and groups that even that eps keeps apart from the main
     # cluster (kept by merge_reach) hold at least this share of the kept points: a
     # neighbouring object may be in the OOI cloud (0 = no warning)
+    retreat: bool = False  # with the warning above: when a step accepted before the set
+    # settled moved its extent past max_extent_growth x the previous step's and moved the
+    # set off the convergence point (and held nothing up), keep the set from before that
+    # step (the object before the neighbour chained to it); the warning says so
     iterations: int = 1  # repeat the removal (stops early, see stop_fraction)
     stop_fraction: float = 0.01  # stop iterating when a round removes fewer than this fraction
 
@@ -200,6 +218,7 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
     e0 = None if settle else _extent(xyz[keep], target)
     tried = [round(cfg.eps_scale, 3)]
     scale = cfg.eps_scale
+    suspect = None  # (scale, set, params before it) of the first off-centring jump pre-settle
     while scale + cfg.eps_step <= cfg.eps_max_scale + 1e-9 and p["clusters"] > 1:
         scale += max(cfg.eps_step, 1e-3)
         tried.append(round(scale, 3))
@@ -225,6 +244,16 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
             p2["parts_joined_at"] = p.get("parts_joined_at", []) + [round(scale, 3)]
             if held:
                 p2["parts_held_up_at"] = p.get("parts_held_up_at", []) + [round(scale, 3)]
+        if (e0 is None and suspect is None and cfg.retreat
+                and e2 > cfg.max_extent_growth * _extent(xyz[keep], target)
+                and _off_centre(xyz[k2], target) > _off_centre(xyz[keep], target)
+                and not _held_up(xyz, keep, k2, up_plane, cfg.part_above, scale * sp,
+                                 cfg.part_min_points)):
+            # accepted (the set has not settled: the object may still be gathering its
+            # parts), but remembered: a part that centres the set or is held up by it passes,
+            # a neighbour beside the object moves the set's box away from the convergence point
+            grow = e2 / max(_extent(xyz[keep], target), 1e-12)
+            suspect = (round(scale, 3), keep, dict(p), grow)
         if e0 is None and len(np.setxor1d(keep, k2)) < cfg.settle_change * len(keep):
             # the set barely changed over this step: the object is whole from here on, and
             # a later step that moves its extent far out joins a neighbour, not a part
@@ -238,6 +267,19 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
     p["eps_scales_tried"] = tried
     apart = 1.0 - p.get("main_share", 1.0)
     if ("stopped_at_scale" not in p and scale + cfg.eps_step > cfg.eps_max_scale + 1e-9
+            and cfg.warn_apart_share > 0 and apart >= cfg.warn_apart_share
+            and suspect is not None):
+        at, keep, p0, grow = suspect
+        p = dict(p0, eps_scales_tried=tried, retreated_from_scale=at,
+                 retreat_apart_share=round(apart, 4))
+        p["warning"] = (
+            f"the DBSCAN widening ran to its widest eps ({scale:g} spacings) without refusing "
+            f"a step and kept {apart:.0%} of the points in groups apart from the main one: "
+            f"a neighbouring object was likely chained to the OOI -- kept instead the "
+            f"{len(keep)} points chosen before the step at {at:g} spacings, which moved the "
+            f"set's extent out {grow:.1f}x and off the cameras' convergence point; look at "
+            f"the OOI cloud and the masks in report.html")
+    elif ("stopped_at_scale" not in p and scale + cfg.eps_step > cfg.eps_max_scale + 1e-9
             and cfg.warn_apart_share > 0 and apart >= cfg.warn_apart_share):
         p["warning"] = (
             f"{apart:.0%} of the OOI points lie in {p['chosen_clusters'] - 1} group(s) apart "

@@ -104,7 +104,7 @@ def preset(method: str) -> dict:
                 "noise": {"method": "dbscan", "select": "central", "eps_scale": 1.0,
                           "eps_step": 0.25, "eps_max_scale": 4.0, "settle_change": 0.15,
                           "max_extent_growth": 1.25, "merge_reach_scale": 1.2,
-                          "part_above": 0.25},
+                          "part_above": 0.25, "retreat": True},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
                           "splat_scale": 0.6, "hull_consistency": False,
