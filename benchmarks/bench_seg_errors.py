@@ -39,6 +39,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 from scipy import ndimage
@@ -60,16 +61,18 @@ COLOURS = {("fn", "plane"): (255, 200, 0), ("fn", "no-seed"): (0, 80, 255),
            ("fp", "leak"): (255, 0, 0), ("fp", "outline"): (255, 140, 140)}
 
 
-def sim_depths(scene: str, seed: int, n_views: int, size: tuple[int, int], cache: Path
-               ) -> tuple[np.ndarray, float, float]:
+def sim_depths(scene: str, seed: int, n_views: int, size: tuple[int, int], cache: Path,
+               sim_set: Optional[dict] = None) -> tuple[np.ndarray, float, float]:
     """Simulator depth maps [V, H, W], support height and OOI radius (cached as npz)."""
     w, h = size
-    path = cache / f"seg_errors_depth_{scene}_s{seed}_v{n_views}_{w}x{h}.npz"
+    tag = "".join(f"_{k}-{v}" for k, v in sorted((sim_set or {}).items()))
+    path = cache / f"seg_errors_depth_{scene}_s{seed}_v{n_views}_{w}x{h}{tag}.npz"
     if path.exists():
         z = np.load(path)
         return z["depth"], float(z["support_z"]), float(z["radius"])
     from ooi_seg_ros.sim import simulate_capture
-    sim = simulate_capture(scene, n_views=n_views, width=w, height=h, seed=seed)
+    sim = simulate_capture(scene, n_views=n_views, width=w, height=h, seed=seed,
+                           **(sim_set or {}))
     summ = sim.scene.summary()
     depth = np.stack(sim.depths).astype(np.float32)
     cache.mkdir(parents=True, exist_ok=True)
@@ -100,7 +103,7 @@ def attribute(scene: str, args) -> dict:
     """Run the default on ``scene`` and split its error pixels by cause."""
     w, h = (int(x) for x in args.size.split("x"))
     cap, cloud, _ = load_case(scene, args.seed, args.views, (w, h), "sfm", Path(args.cache),
-                              jpeg=args.jpeg)
+                              jpeg=args.jpeg, sim_set=args.sim_set)
     views = cap.views
     idx = {v.key: i for i, v in enumerate(views)}
     floors: dict[int, np.ndarray] = {}
@@ -138,7 +141,7 @@ def attribute(scene: str, args) -> dict:
     radii = point_radii(xyz, cfg.masks.splat_k, cfg.masks.splat_scale)
     splat_bad = point_masks(xyz[~on_obj], radii[~on_obj], mviews, cfg.masks)
     depth, support_z, radius = sim_depths(scene, args.seed, args.views, (w, h),
-                                          Path(args.cache))
+                                          Path(args.cache), args.sim_set)
     fn = {c: 0 for c in FN_CAUSES}
     fp = {c: 0 for c in FP_CAUSES}
     fp_plane = 0
@@ -221,6 +224,9 @@ def main() -> None:
     ap.add_argument("--worst", type=int, default=3, help="views per scene in the figure")
     ap.add_argument("--figure", help="write the cause overlay of the worst views here")
     ap.add_argument("--json", help="write the counts here")
+    ap.add_argument("--sim-set", type=json.loads, default=None, metavar="JSON",
+                    help="SimConfig options of the captures, as bench_seg_quality.py's "
+                         "(e.g. '{\"hfov_deg\": 90}'; cached apart)")
     ap.add_argument("--set", metavar="JSON",
                     help='overrides of the default, e.g. the session-5 default: \'{"refine": '
                          '{"plane_check": {"shifted": false, "object_keep": false}}}\'')

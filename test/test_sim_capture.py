@@ -10,6 +10,7 @@ import pytest
 
 from ooi_seg_ros.cli import main as cli_main
 from ooi_seg_ros.core.geometry import project
+from ooi_seg_ros.core.types import InputError
 from ooi_seg_ros.sim import (STAMP_BASE_NS, Renderer, intrinsics_from_fov, make_scene,
                              orbit_poses, simulate_capture, simulate_stream)
 
@@ -205,3 +206,20 @@ def test_shade_subsamples_integrates_texture_only():
         assert 0.1 < diff.mean() < 15.0
     assert "shade_subsamples" not in a.capture.meta["config"]
     assert b.capture.meta["config"]["shade_subsamples"] is True
+
+
+def test_partial_orbit_spans_its_arc_only():
+    """``arc_deg`` < 360 flies every ring over that azimuth span (one side of the object),
+    first and last views at its ends; the default full orbit is unchanged by the option."""
+    sc = make_scene("aircraft", 0)
+    full = orbit_poses(sc, 30, seed=0)
+    same = orbit_poses(sc, 30, seed=0, arc_deg=360.0)
+    assert all(np.array_equal(a.t, b.t) for a, b in zip(full, same))
+    poses = orbit_poses(sc, 30, seed=0, arc_deg=120.0)
+    d = np.array([p.t for p in poses]) - sc.ooi_center
+    az = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
+    # the rings start within 0.2 rad of azimuth 0 and span 120 deg
+    assert az.min() > -1.0 and az.max() < 0.2 * 180 / np.pi + 120.0 + 1.0
+    assert np.ptp(az) > 110.0
+    with pytest.raises(InputError, match="arc_deg"):
+        orbit_poses(sc, 30, seed=0, arc_deg=0.0)

@@ -27,6 +27,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--rings", default=None,
                    help="orbit rings as ELEV:DIST,... (elevation in degrees, distance in OOI "
                         "radii), e.g. 15:2.5,35:2.3; default: the scene's own rings")
+    p.add_argument("--arc", type=float, default=360.0,
+                   help="azimuth span of each ring in degrees (default 360, a full orbit; "
+                        "e.g. 180 for an object beside a wall)")
     p.add_argument("--distortion", default=None,
                    help="plumb_bob lens distortion k1,k2[,p1,p2,k3] (default: ideal pinhole)")
     p.add_argument("--list", action="store_true", help="print the scene names and exit")
@@ -89,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--views {args.views}: need at least 1 view")
     if args.supersample < 1 or args.supersample > 4:
         raise InputError(f"--supersample {args.supersample}: use 1..4")
+    if not 0 < args.arc <= 360:
+        raise InputError(f"--arc {args.arc}: use a span within (0, 360] degrees")
     w, h = parse_size(args.size)
     rings = parse_rings(args.rings)
     distortion = parse_distortion(args.distortion)
@@ -102,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     sim = simulate_capture(args.scene, n_views=args.views, width=w, height=h, seed=args.seed,
                            rings=rings, hfov_deg=args.fov, supersample=args.supersample,
-                           distortion=distortion)
+                           distortion=distortion, arc_deg=args.arc)
     t1 = time.monotonic()
     capture_io.write_capture(sim.capture, args.out)
     cov = [float(v.gt_mask.mean()) for v in sim.capture.views]

@@ -45,6 +45,8 @@ class SimConfig:
     exposure_jitter: float = 0.03  # std of the per-frame exposure gain (auto exposure)
     gt_points: int = 20000  # points sampled on the OOI surface for evaluation
     distortion: Optional[list[float]] = None  # plumb_bob [k1, k2, p1, p2, k3]; None = pinhole
+    arc_deg: float = 360.0  # azimuth span each ring flies: 360 = full orbits; less = a partial
+    # orbit (an object beside a wall or a no-fly zone), views spread evenly over the arc
 
 
 @dataclass
@@ -146,15 +148,19 @@ def _roll(pose: Pose, angle: float) -> Pose:
 
 def orbit_poses(scene: SimScene, n_views: int, rings: Optional[Sequence] = None,
                 seed: int = 0, aim_jitter: float = 0.05,
-                roll_jitter_deg: float = 1.5) -> list[Pose]:
+                roll_jitter_deg: float = 1.5, arc_deg: float = 360.0) -> list[Pose]:
     """Camera-to-world poses of a drone inspection orbit, in flight order.
 
     Views are shared between rings in proportion to each ring's circumference (at least 3 per
     ring); each ring is flown in the same direction, starting at a ring-dependent azimuth. The
-    camera looks at the OOI centre with a small random aim offset and roll.
+    camera looks at the OOI centre with a small random aim offset and roll. ``arc_deg`` < 360
+    flies each ring over that azimuth span only (first and last view at its ends), all rings
+    over the same side of the object.
     """
     if n_views < 1:
         raise InputError(f"n_views={n_views}: need at least one view")
+    if not (0.0 < arc_deg <= 360.0):
+        raise InputError(f"arc_deg={arc_deg} must be within (0, 360] degrees")
     rs = _rings(scene, rings)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x0CA3]))
     center = scene.ooi_center
@@ -171,9 +177,13 @@ def orbit_poses(scene: SimScene, n_views: int, rings: Optional[Sequence] = None,
     poses = []
     for i, (ring, m) in enumerate(zip(rs, counts)):
         e = np.radians(ring.elevation_deg)
-        a0 = 0.6 * i + rng.uniform(0, 0.2)
+        # a partial orbit flies every ring over the same side
+        a0 = rng.uniform(0, 0.2) + (0.6 * i if arc_deg == 360.0 else 0.0)
         for j in range(m):
-            a = a0 + 2 * np.pi * j / max(m, 1)
+            if arc_deg < 360.0:
+                a = a0 + np.radians(arc_deg) * j / max(m - 1, 1)
+            else:
+                a = a0 + 2 * np.pi * j / max(m, 1)
             direction = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
             eye = _place(scene, center, direction, ring.distance * radius)
             aim = center + rng.normal(0, aim_jitter * radius, 3)
@@ -210,7 +220,7 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
     except ValueError as exc:
         raise InputError(str(exc)) from None
     poses = orbit_poses(scene, cfg.n_views, cfg.rings, cfg.seed, cfg.aim_jitter,
-                        cfg.roll_jitter_deg)
+                        cfg.roll_jitter_deg, cfg.arc_deg)
     renderer = Renderer(scene)
     views, depths = [], []
     for k, pose in enumerate(poses):
@@ -227,6 +237,8 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
     meta["config"] = asdict(cfg)
     if not cfg.shade_subsamples:  # recorded only when on: captures (and the demo bag)
         del meta["config"]["shade_subsamples"]  # simulated before the option keep their bytes
+    if cfg.arc_deg == 360.0:  # likewise
+        del meta["config"]["arc_deg"]
     capture = Capture(views=views, source=f"sim:{cfg.scene}:seed{cfg.seed}",
                       gt_ooi_points=scene.sample_ooi_points(cfg.gt_points, cfg.seed), meta=meta)
     return SimCapture(capture, scene, cfg, depths)

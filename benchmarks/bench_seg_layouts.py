@@ -1,0 +1,109 @@
+"""Mask quality under other camera layouts than the scenes' own three-ring orbits.
+
+The quality bench flies every scene's own three rings with a 60 deg lens. A drone crew flies
+what the site allows: one ring, half an orbit beside a wall, farther out, or a wider lens.
+For each scene and ``--layouts`` entry this simulates that capture (cached by
+``bench_seg_quality.load_case``, SfM included), runs the default (``ours``) and every ``--set``
+variant on the same cloud, and prints IoU / precision / recall side by side.
+
+Layouts (``SimConfig`` options; ring distances in OOI radii):
+  ``orbit``     the scene's own rings (the quality bench's capture)
+  ``one-ring``  the scene's middle ring only
+  ``half-arc``  every ring over 180 deg of azimuth (``arc_deg``)
+  ``far``       the scene's rings 1.6x farther out (the object a third of the size in frame)
+  ``wide``      a 90 deg lens at 544x408: the object as many pixels across as in ``orbit``,
+                but 3x the room around it in every frame
+  ``wide-low``  a 90 deg lens at 320x240 (the object 0.6x as wide in pixels)
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_layouts.py \\
+        --scenes aircraft tabletop toycar stool bicycle --layouts one-ring half-arc wide \\
+        --set 'cloudshare={"floor": {"support_min_of": "cloud"}}'
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_seg_quality import load_case  # noqa: E402
+
+from ooi_seg_ros.seg.pipeline import make_config, segment  # noqa: E402
+from ooi_seg_ros.sim import make_scene  # noqa: E402
+
+LAYOUTS = ("orbit", "one-ring", "half-arc", "far", "wide", "wide-low")
+
+
+def layout(scene: str, name: str, seed: int) -> tuple[dict, tuple[int, int]]:
+    """(SimConfig options, image size) of layout ``name`` for ``scene``."""
+    rings = [[r.elevation_deg, r.distance] for r in make_scene(scene, seed).rings]
+    if name == "orbit":
+        return {}, (320, 240)
+    if name == "one-ring":
+        return {"rings": [rings[len(rings) // 2]]}, (320, 240)
+    if name == "half-arc":
+        return {"arc_deg": 180.0}, (320, 240)
+    if name == "far":
+        return {"rings": [[e, round(1.6 * d, 3)] for e, d in rings]}, (320, 240)
+    if name == "wide":
+        return {"hfov_deg": 90.0}, (544, 408)
+    if name == "wide-low":
+        return {"hfov_deg": 90.0}, (320, 240)
+    raise ValueError(f"unknown layout {name!r}; choose from {', '.join(LAYOUTS)}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", nargs="+",
+                    default=["aircraft", "tabletop", "toycar", "stool", "bicycle"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ap.add_argument("--layouts", nargs="+", default=["one-ring", "half-arc", "wide"],
+                    choices=LAYOUTS)
+    ap.add_argument("--views", type=int, default=60)
+    ap.add_argument("--view-step", type=int, default=2, help="score every k-th view")
+    ap.add_argument("--cache", default="/tmp/ooi_seg_bench_cache_v2")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=JSON",
+                    help="a variant: overrides of ours (repeatable)")
+    args = ap.parse_args()
+    variants = [("ours", {})] + [(s.split("=", 1)[0], json.loads(s.split("=", 1)[1]))
+                                 for s in args.set]
+    print(f"{'scene':>9} {'seed':>4} {'layout':>9} {'variant':>12} {'IoU':>6} {'prec':>6} "
+          f"{'recall':>6} {'minIoU':>6} {'ooi pts':>7} {'warn':>4} {'time s':>6}", flush=True)
+    rows = []
+    for scene in args.scenes:
+        for seed in args.seeds:
+            for lay in args.layouts:
+                sim_set, size = layout(scene, lay, seed)
+                cap, cloud, _ = load_case(scene, seed, args.views, size, "sfm",
+                                          Path(args.cache), sim_set=sim_set or None)
+                keys = [v.key for v in cap.views[::max(1, args.view_step)]]
+                for name, over in variants:
+                    t0 = time.perf_counter()
+                    r = segment(cap, cloud, make_config("ours", dict(over, seed=seed)),
+                                mask_keys=keys)
+                    m = r.metrics["mean"]
+                    worst = min(pv["iou"] for pv in r.metrics["per_view"].values())
+                    rows.append((scene, lay, name, m))
+                    print(f"{scene:>9} {seed:>4} {lay:>9} {name:>12} {m['iou']:6.3f} "
+                          f"{m['precision']:6.3f} {m['recall']:6.3f} {worst:6.3f} "
+                          f"{len(r.ooi_cloud):7d} {len(r.warnings):4d} "
+                          f"{time.perf_counter() - t0:6.1f}", flush=True)
+    print("\nmeans over seeds, IoU / recall")
+    for name, _ in variants:
+        for lay in args.layouts:
+            cells = []
+            for scene in args.scenes:
+                ms = [r[3] for r in rows if r[0] == scene and r[1] == lay and r[2] == name]
+                cells.append(f"{scene} {np.mean([m['iou'] for m in ms]):.3f} / "
+                             f"{np.mean([m['recall'] for m in ms]):.3f}")
+            print(f"{name:>12} {lay:>9}: " + ", ".join(cells))
+
+
+if __name__ == "__main__":
+    main()
