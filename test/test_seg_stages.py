@@ -347,6 +347,33 @@ def test_a_plane_through_the_object_with_its_support_visible_under_it_is_no_supp
     assert abs(p["support_plane"][3]) < 0.01  # the bench, not the clutter's tops
 
 
+def _wide_stool_scene(seed=3):
+    """The stool scene seen through a wide lens: the same stool and ball, but the floor around
+    them out to 5 m at the same density (a wider frame or a farther orbit lets in more of the
+    room), so the stool's top holds under 10% of the cloud."""
+    xyz, centers, up, target = _stool_scene(seed)
+    rng = np.random.default_rng(seed + 10)
+    far = np.column_stack([rng.uniform(-5, 5, (50000, 2)), rng.normal(0, 0.004, 50000)])
+    far = far[(np.abs(far[:, 0]) > 2.0) | (np.abs(far[:, 1]) > 2.0)]
+    return np.vstack([far, xyz]), len(far), centers, up, target
+
+
+def test_a_small_support_is_found_among_much_floor():
+    """``support_min_of="remaining"``: a stool's top that holds under ``support_min_inliers``
+    of a cloud full of floor is still tried once the floor is gone, and taken."""
+    xyz, n_far, centers, up, target = _wide_stool_scene()
+    cfg = FloorConfig(mode="support", support_select="nearest", band_interior=True)
+    _, p0 = floor_filter(xyz, cfg, centers, up, target)
+    assert abs(p0["support_plane"][3]) < 0.05  # the floor: the top was never tried
+    assert len(p0["planes_tried"]) == 1
+    cfg.support_min_of = "remaining"
+    keep, p1 = floor_filter(xyz, cfg, centers, up, target)
+    assert abs(abs(p1["support_plane"][3]) - 0.5) < 0.02  # the stool's top
+    ball = np.arange(len(xyz) - 800, len(xyz))
+    assert np.isin(ball, keep).mean() > 0.95
+    assert (keep < len(xyz) - 800).sum() < 0.02 * (len(xyz) - 800)
+
+
 def test_skin_under_the_support_interior_ignores_a_cloth_hanging_at_its_edge():
     """The cloth's sides below the stool's top are not the top's skin: measured under the
     top's interior, the band stays thin and the object's foot stays."""

@@ -57,6 +57,9 @@ class FloorConfig:
     support_k: int = 1  # support mode: neighbour rank of the spacing used for the threshold
     support_max_planes: int = 6  # support mode: planes extracted one after another
     support_min_inliers: float = 0.1  # support mode: smallest plane, fraction of the cloud
+    support_min_of: str = "cloud"  # support mode: support_min_inliers is a share of the
+    # whole cloud ("cloud"), or of the points the planes extracted before left ("remaining":
+    # the share of background a wide lens or a far orbit lets in does not hide a small support)
     support_min_up: float = 0.7  # support mode: min cos(normal, mean camera up)
     band_sigmas: float = 2.5  # support mode: removal band >= this x inlier residual std
     band_mirror_quantile: float = 0.99  # support mode: band >= this quantile of the depths of
@@ -223,11 +226,17 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
     nearest: Optional[tuple[float, np.ndarray, float]] = None  # nearest below, surrounding
     qualified: list = []  # "nearest": (height of the target, plane, res std, inliers, k)
     tried = []
+    if cfg.support_min_of not in ("cloud", "remaining"):
+        raise ValueError(f"floor.support_min_of={cfg.support_min_of!r}; use cloud or "
+                         "remaining")
     for j in range(cfg.support_max_planes):
-        if len(remaining) < max(10, cfg.support_min_inliers * n):
+        # the smallest plane worth a look: a share of the whole cloud, or of what the planes
+        # before it left (a stool's top once the floor around it is gone)
+        basis = n if cfg.support_min_of == "cloud" else len(remaining)
+        if len(remaining) < max(10, cfg.support_min_inliers * basis):
             break
         plane, inl = _fit_plane(xyz[remaining], thr, cfg.ransac_iterations, cfg.seed + j)
-        if len(inl) < cfg.support_min_inliers * n:
+        if len(inl) < cfg.support_min_inliers * basis:
             break
         plane = _refit(xyz[remaining[inl]], plane)
         inl = np.nonzero(np.abs(xyz[remaining] @ plane[:3] + plane[3]) < thr)[0]

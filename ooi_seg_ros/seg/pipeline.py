@@ -100,7 +100,7 @@ def preset(method: str) -> dict:
         return {"method": "ours", "roi": {"enabled": True},
                 "density": {"drop_fraction": 0.05, "first_peak": False},
                 "floor": {"mode": "support", "support_select": "nearest",
-                          "band_interior": True},
+                          "band_interior": True, "support_min_of": "remaining"},
                 "noise": {"method": "dbscan", "select": "central", "eps_scale": 1.0,
                           "eps_step": 0.25, "eps_max_scale": 4.0, "settle_change": 0.15,
                           "max_extent_growth": 1.25, "merge_reach_scale": 1.2,
