@@ -374,6 +374,31 @@ def test_a_small_support_is_found_among_much_floor():
     assert (keep < len(xyz) - 800).sum() < 0.02 * (len(xyz) - 800)
 
 
+def test_a_far_floor_s_thicker_skin_is_removed_ring_by_ring():
+    """``band_local``: a floor whose SfM skin thickens away from the object (seen farther
+    off and at a shallower angle, as through a wide lens) leaves its outer skin above a band
+    measured under the interior; measured ring by ring beyond the interior, it goes, and the
+    ball standing on the floor at the centre stays."""
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(-5, 5, (40000, 2))
+    r = np.hypot(xy[:, 0], xy[:, 1])
+    floor = np.column_stack([xy, rng.normal(0, 0.003 + 0.006 * r)])
+    ball = _sphere(300, r=0.3, c=(0, 0, 0.32), seed=4)
+    xyz = np.vstack([floor, ball])
+    views = _ring_views(target=(0, 0, 0.32))
+    centers = np.array([v.pose.t for v in views])
+    up = -np.mean([v.pose.R[:, 1] for v in views], axis=0)
+    target = np.array([0, 0, 0.32])
+    cfg = FloorConfig(mode="support", support_select="nearest", band_interior=True)
+    k0, p0 = floor_filter(xyz, cfg, centers, up, target)
+    cfg.band_local = 4
+    k1, p1 = floor_filter(xyz, cfg, centers, up, target)
+    assert (k0 < 40000).sum() > 400  # the outer skin left above the interior's band
+    assert (k1 < 40000).sum() < 0.25 * (k0 < 40000).sum()
+    assert len(p1["band_rings"]) == 4 and p1["band_rings"][-1] > 1.4 * p1["band"]
+    assert (k1 >= 40000).sum() >= (k0 >= 40000).sum() - 3  # the ball stays
+
+
 def test_skin_under_the_support_interior_ignores_a_cloth_hanging_at_its_edge():
     """The cloth's sides below the stool's top are not the top's skin: measured under the
     top's interior, the band stays thin and the object's foot stays."""
