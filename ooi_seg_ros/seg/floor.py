@@ -39,8 +39,9 @@ ring. The floor far from the object is seen from farther off and at a shallower 
 skin of SfM points is thicker there than under the object: through a 90 deg lens at 320x240
 the bicycle scene's lawn left points above the interior's band (2.3 cm; the four rings beyond
 measure 3.3, 2.3, 3.6 and 8.9 cm): 100 of the 122 OOI points were lawn and the masks covered
-the lawn and the trees (IoU 0.2; ring by ring, 50 points and IoU ~0.8). The interior, where the object stands, keeps the interior's band, so the object's foot
-is cut no deeper than before; a table's apron hangs under its outer rings and lifts their
+the lawn and the trees (IoU 0.200; ring by ring, 50 points and IoU 0.738). The interior,
+where the object stands, keeps the interior's band, so the object's foot is cut no deeper
+than before; a table's apron hangs under its outer rings and lifts their
 band, which only removes more of what stands near the table's edge, not the object the
 cameras converge on.
 """
