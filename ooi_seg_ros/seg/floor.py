@@ -203,13 +203,19 @@ def surround(points: np.ndarray, plane: np.ndarray, target: np.ndarray) -> int:
     return int(np.sum(cnt >= 0.02 * max(len(points), 1)))
 
 
+def foot_radius(xyz: np.ndarray, plane: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Horizontal distance of every point of ``xyz`` from the foot of ``target`` on
+    ``plane`` (measured along the plane)."""
+    n = plane[:3]
+    q = xyz - (target - (target @ n + plane[3]) * n)
+    return np.linalg.norm(q - np.outer(q @ n, n), axis=1)
+
+
 def _interior(xyz: np.ndarray, plane: np.ndarray, target: np.ndarray, sd: np.ndarray,
               thr: float) -> np.ndarray:
     """Points nearer the foot of ``target`` on ``plane`` (horizontally) than the median of
     the plane's inliers (``|sd| < thr``): under the support's interior, away from its edges."""
-    n = plane[:3]
-    q = xyz - (target - (target @ n + plane[3]) * n)
-    r = np.linalg.norm(q - np.outer(q @ n, n), axis=1)
+    r = foot_radius(xyz, plane, target)
     return r < np.median(r[np.abs(sd) < thr])
 
 
@@ -219,15 +225,8 @@ def under_interior(plane: np.ndarray, inliers: np.ndarray, target: np.ndarray,
     interior of ``plane`` (nearer the foot than the median of its ``inliers``), per inlier."""
     if len(lower) == 0:
         return 0.0
-    n = plane[:3]
-    foot = target - (target @ n + plane[3]) * n
-
-    def radius(p: np.ndarray) -> np.ndarray:
-        q = p - foot
-        return np.linalg.norm(q - np.outer(q @ n, n), axis=1)
-
-    r_in = float(np.median(radius(inliers)))
-    return float(np.sum(radius(lower) < r_in)) / max(len(inliers), 1)
+    r_in = float(np.median(foot_radius(inliers, plane, target)))
+    return float(np.sum(foot_radius(lower, plane, target) < r_in)) / max(len(inliers), 1)
 
 
 def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
@@ -306,9 +305,7 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
     local = np.full(n, band)
     ring_bands: list = []
     if cfg.band_local > 0 and cfg.band_mirror_quantile > 0:
-        nrm = plane[:3]
-        q = xyz - (target - (target @ nrm + plane[3]) * nrm)
-        rad = np.linalg.norm(q - np.outer(q @ nrm, nrm), axis=1)
+        rad = foot_radius(xyz, plane, target)
         r_in = rad[np.abs(sd) < thr]
         edges = np.quantile(r_in, np.linspace(0.5, 1.0, cfg.band_local + 1))
         edges[-1] = np.inf
