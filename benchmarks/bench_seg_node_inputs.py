@@ -59,6 +59,11 @@ def main() -> None:
     ap.add_argument("--points", action="store_true", help="point stages only")
     ap.add_argument("--list", type=int, default=12, help="differing points listed per variant")
     a = ap.parse_args()
+    if not Path(a.inputs).is_file():
+        sys.exit(f"{a.inputs}: no such file. Write it first by running the node integration "
+                 f"test with the plugin: OOI_DUMP_NODE_INPUTS={a.inputs} PYTHONPATH=benchmarks "
+                 f".venv/bin/python -m pytest -p node_inputs_plugin -q -s "
+                 f"test/test_nodes_pipeline.py::test_nodes_on_demo_bag")
     with open(a.inputs, "rb") as f:
         d = pickle.load(f)
     gt = ground_truth(Path(a.bag))
