@@ -39,6 +39,40 @@ def test_density_keeps_dense_blob_over_sparse_noise():
     assert p["bandwidth"] > 0
 
 
+def test_density_relative_cut_takes_what_is_sparse_however_many_points_that_is():
+    # an object of uneven density (a dense body, a sparser wing) and a few isolated specks:
+    # a cut at a fraction of the median density takes the specks and keeps the wing, with
+    # 10 specks or 100; a fixed share takes its count whatever the points are
+    rng = np.random.default_rng(4)
+    body = rng.uniform([-0.5, -0.2, -0.2], [0.5, 0.2, 0.2], (3000, 3))
+    wing = rng.uniform([0.5, -0.05, -1.5], [0.8, 0.05, 1.5], (400, 3))
+    obj = np.vstack([body, wing])
+    for n_specks in (10, 100):
+        specks = rng.uniform(-6, 6, (n_specks, 3))
+        x = np.vstack([obj, specks])
+        keep, p = density_filter(x, DensityConfig(seed=1, drop_fraction=0.0, first_peak=False,
+                                                  relative_cut=0.1))
+        kept = np.zeros(len(x), bool)
+        kept[keep] = True
+        assert kept[:len(obj)].mean() > 0.995  # the sparse wing stays
+        assert kept[len(obj):].mean() < 0.1  # the specks go
+        assert 0 < p["relative_cut"] < np.inf
+        share, _ = density_filter(x, DensityConfig(seed=1, drop_fraction=0.05, first_peak=False))
+        took = np.setdiff1d(np.arange(len(x)), share)
+        assert len(took) == pytest.approx(0.05 * len(x), abs=1)
+        if n_specks == 10:  # a 5% share of 3,410 points is 170: 160 of them the object's
+            assert (took < len(obj)).sum() > 100
+
+
+def test_density_options_out_of_range_are_a_config_error():
+    from ooi_seg_ros.core.types import InputError
+    from ooi_seg_ros.seg.pipeline import make_config
+    with pytest.raises(InputError, match="drop_fraction"):
+        make_config("ours", {"density": {"drop_fraction": 1.5}})
+    with pytest.raises(InputError, match="relative_cut"):
+        make_config("ours", {"density": {"relative_cut": -0.1}})
+
+
 def test_density_truncated_kernel_ranks_like_dense_kde():
     x = np.random.default_rng(2).normal(size=(800, 3)) * [1, 1, 0.3]
     a, _ = monte_carlo_density(x, DensityConfig(seed=3, method="kdtree"))

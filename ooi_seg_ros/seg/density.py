@@ -15,6 +15,15 @@ Scaling: a dense scikit-learn KDE over the full cloud is O(N^2) (the baseline, `
 subset points found with a KD-tree: O(N k log n) per subset, so a million points stay cheap.
 The bandwidth is derived from the cloud: ``bandwidth_scale`` times the median distance to the
 ``bandwidth_k``-th neighbour, so the kernel follows the cloud's own spacing.
+
+The improved preset (``ours``) runs this stage after the floor's and cuts by density, not by
+share: ``relative_cut`` removes the points whose density is under a tenth of the cloud's
+median (about a tenth of the typical number of neighbours inside the kernel), however many
+or few they are. A fixed share (``drop_fraction``) removes that many points whatever they
+are: once an earlier stage had taken the specks, 5% reached into the aircraft's wing tips and
+a sparse plant's leaves. On the 25 simulator clouds measured, every point on the object lay
+above 0.138 of its cloud's median; 0.1 took none of them (BENCHMARKS, Segmentation >
+Session 45).
 """
 
 from __future__ import annotations
@@ -37,6 +46,9 @@ class DensityConfig:
     bandwidth_k: int = 8  # neighbour rank that defines the cloud's spacing
     kernel_neighbours: int = 32  # subset neighbours summed per point (truncated kernel)
     drop_fraction: float = 0.3  # fraction of lowest-density points removed
+    relative_cut: float = 0.0  # also remove points whose density is below this fraction of
+    # the cloud's median density (0 = off): a cut set by the cloud's own typical density, so
+    # it takes what is sparse, however many points that is (a share takes as many either way)
     first_peak: bool = True  # apply the "first peak" step after the percentile cut
     first_peak_mode: str = "below_peak"  # "below_peak" | "below_valley" (alternative reading)
     hist_bins: int = 50  # bins of the log-density histogram used by the first-peak step
@@ -120,9 +132,14 @@ def density_filter(xyz: np.ndarray, cfg: DensityConfig) -> tuple[np.ndarray, dic
     dens, h = monte_carlo_density(xyz, cfg)
     cut = np.quantile(dens, cfg.drop_fraction) if cfg.drop_fraction > 0 else -np.inf
     keep = dens > cut if cfg.drop_fraction > 0 else np.ones(n, bool)
+    rel_cut = -np.inf
+    if cfg.relative_cut > 0:
+        rel_cut = float(cfg.relative_cut) * float(np.median(dens))
+        keep &= dens >= rel_cut
     peak_cut = -np.inf
     if cfg.first_peak and keep.sum() > 10:
         peak_cut = first_peak_threshold(dens[keep], cfg.hist_bins, cfg.first_peak_mode)
         keep &= dens >= peak_cut
     return np.nonzero(keep)[0], {"bandwidth": h, "percentile_cut": float(cut),
+                                 "relative_cut": float(rel_cut),
                                  "first_peak_cut": float(peak_cut)}

@@ -98,7 +98,7 @@ def preset(method: str) -> dict:
                 "refine": {"enabled": False}, "stability": {"draws": 0}}
     if method == "ours":
         return {"method": "ours", "roi": {"enabled": True},
-                "density": {"drop_fraction": 0.05, "first_peak": False},
+                "density": {"drop_fraction": 0.0, "relative_cut": 0.1, "first_peak": False},
                 "floor": {"mode": "support", "support_select": "nearest",
                           "band_interior": True, "support_min_of": "remaining",
                           "band_local": 4},
@@ -145,6 +145,14 @@ def make_config(method: Optional[str] = None, overrides: Optional[dict] = None
         cfg = cfgmod.from_dict(SegmentationConfig, data)
     except (ValueError, TypeError) as exc:
         raise InputError(f"bad segmentation config: {exc}") from None
+    # checked here: a stage's ValueError while it runs reads as "no OOI" (_run_point_stages)
+    d = cfg.density
+    if not 0.0 <= float(d.drop_fraction) < 1.0:
+        raise InputError(f"bad segmentation config: density.drop_fraction={d.drop_fraction}; "
+                         f"it is a share of the points in [0, 1)")
+    if not 0.0 <= float(d.relative_cut) <= 1.0:
+        raise InputError(f"bad segmentation config: density.relative_cut={d.relative_cut}; it "
+                         f"is a fraction of the median density in [0, 1] (0 = off)")
     for sub in (cfg.density, cfg.floor, cfg.refine):
         sub.seed = cfg.seed
     return cfg
