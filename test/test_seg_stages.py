@@ -461,6 +461,27 @@ def test_central_cluster_does_not_merge_a_neighbour_beyond_its_reach():
     assert ((old >= 1650) & (old < 2450)).sum() > 700  # the frame-radius rule merged it
 
 
+def test_widening_goes_on_while_a_sparse_part_is_in_no_cluster():
+    # a dense body and a sparser part on top of it (a plant's leaves over its pot): at one
+    # spacing DBSCAN finds one cluster and leaves the whole part as noise, so "more than one
+    # cluster" alone never starts the widening; widen_unclustered widens while a settle_change
+    # share of the points is in no cluster, and the part joins
+    from ooi_seg_ros.seg.pipeline import preset
+    rng = np.random.default_rng(1)
+    body = rng.normal(0, 0.15, (400, 3)) + [0, 0, 0.4]
+    top = rng.uniform([-0.25, -0.25, 0.75], [0.25, 0.25, 0.75 + 0.1 * 1.8 ** 3], (100, 3))
+    xyz = np.vstack([body, top])
+    skip = ("method", "widen_unclustered")
+    kw = {k: v for k, v in preset("ours")["noise"].items() if k not in skip}
+    target = np.array([0, 0, 0.4])
+    k0, p0 = noise_filter(xyz, NoiseConfig(widen_unclustered=False, **kw), target, 1.0)
+    assert p0["clusters"] == 1 and p0["unclustered"] >= kw["settle_change"]
+    assert "eps_scales_tried" not in p0 and (k0 >= 400).sum() < 10
+    k1, p1 = noise_filter(xyz, NoiseConfig(widen_unclustered=True, **kw), target, 1.0)
+    assert p1["eps_scales_tried"][0] == 1.0 and len(p1["eps_scales_tried"]) > 1
+    assert (k1 >= 400).sum() >= 90 and (k1 < 400).sum() >= (k0 < 400).sum()
+
+
 def test_refine_observations_follow_view_keys():
     """Observations index the cloud's own views: a reordered subset of views gets its own."""
     from ooi_seg_ros.seg.refine import _obs_by_view
