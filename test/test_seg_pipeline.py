@@ -289,24 +289,36 @@ def test_a_sparse_object_cloud_widens_the_grabcut_band_and_keeps_more_of_the_obj
     """``refine.band_gaps`` (3 in ``ours``): where the OOI cloud is sparse in a view, the band
     GrabCut may add pixels in reaches three mean gaps between its seeds past the silhouette,
     so the plant's fronds that no point lies on can join by colour. The stool's plant from
-    ~60 points: every view widened, recall and IoU up against the fraction alone; from ~200
-    points almost no view changes (the band follows the cloud's density). The size of the gain
-    depends on the machine (the same code and pinned packages): over 0.02 recall on the CPU of
-    session 39, +0.014 (IoU +0.022) on the AMD EPYC of session 41, so the test asks for
-    +0.01."""
+    ~60 points, four captures (simulator and proxy seeds 0-3): every view widened, recall and
+    IoU up on average against the fraction alone; from ~200 points almost no view changes
+    (the band follows the cloud's density).
+
+    Measured over four captures, not one: a single capture's gain depends on the machine
+    (the same code and pinned packages; GrabCut's float arithmetic differs with the CPU's
+    vector units). Seed 0 alone gained over +0.02 recall on the CPU of session 39, +0.014 on
+    the AMD EPYC of session 41 and +0.001 (IoU -0.005) on the AVX-512 Xeon of session 46,
+    where seeds 1-3 gain +0.018 to +0.044 recall (mean over 0-3: recall +0.024, IoU
+    +0.021)."""
+    gains = []
+    for seed in range(4):
+        sim = simulate_capture("stool", n_views=12, width=320, height=240, seed=seed)
+        sparse = depth_proxy_cloud(sim, 100, seed=seed)
+        frac = segment(sim.capture, sparse, make_config("ours", {"refine": {"band_gaps": 0.0}}))
+        gaps = segment(sim.capture, sparse, make_config("ours"))
+        assert len(gaps.ooi_cloud) < 100
+        assert frac.params["refine"]["band_widened"] == 0
+        assert gaps.params["refine"]["band_widened"] == len(sim.capture.views)
+        a, b = frac.metrics["mean"], gaps.metrics["mean"]
+        gains.append((b["recall"] - a["recall"], b["iou"] - a["iou"]))
+        assert b["recall"] > a["recall"] - 0.01 and b["iou"] > a["iou"] - 0.02, (seed, a, b)
+    recall_gain, iou_gain = np.mean(gains, axis=0)
+    assert recall_gain > 0.01 and iou_gain > 0.005, gains
     sim = simulate_capture("stool", n_views=12, width=320, height=240, seed=0)
-    sparse = depth_proxy_cloud(sim, 100, seed=0)
-    frac = segment(sim.capture, sparse, make_config("ours", {"refine": {"band_gaps": 0.0}}))
-    gaps = segment(sim.capture, sparse, make_config("ours"))
-    assert len(gaps.ooi_cloud) < 100
-    assert frac.params["refine"]["band_widened"] == 0
-    assert gaps.params["refine"]["band_widened"] == len(sim.capture.views)
-    a, b = frac.metrics["mean"], gaps.metrics["mean"]
-    assert b["recall"] > a["recall"] + 0.01 and b["iou"] > a["iou"], (a, b)
-    dense = segment(sim.capture, depth_proxy_cloud(sim, 300, seed=0), make_config("ours"))
+    cloud = depth_proxy_cloud(sim, 300, seed=0)
+    dense = segment(sim.capture, cloud, make_config("ours"))
     assert dense.params["refine"]["band_widened"] <= len(sim.capture.views) // 4
     with pytest.raises(ValueError, match="band_gaps"):
-        segment(sim.capture, sparse, make_config("ours", {"refine": {"band_gaps": -1.0}}))
+        segment(sim.capture, cloud, make_config("ours", {"refine": {"band_gaps": -1.0}}))
 
 
 def test_thinning_the_seeds_of_a_dense_cloud_with_stray_points_raises_precision():
