@@ -549,6 +549,45 @@ def test_plane_check_calls_the_floor_floor_and_the_object_not():
     assert (half & views[4].gt_mask[::2, ::2]).sum() < 0.02 * views[4].gt_mask[::2, ::2].sum()
 
 
+def test_plane_check_exposure_matches_a_neighbour_s_gain_before_the_colour_test():
+    """Every other view 20% brighter (auto exposure): the colour test (max_diff) then fails
+    on bright floor texture that lines up; with ``exposure`` the pair's gain is measured on
+    the patches whose NCC matches and the floor is found again, the object still not."""
+    import dataclasses
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency, _pair_gain
+    from ooi_seg_ros.sim import simulate_capture
+    sel = np.zeros((10, 10), bool)
+    assert _pair_gain(np.full((10, 10), 110.0), np.full((10, 10), 100.0), sel) == 1.0
+    sel[:6] = True  # 60 patches: enough to measure
+    assert _pair_gain(np.full((10, 10), 110.0), np.full((10, 10), 100.0), sel) == \
+        pytest.approx(1.1)
+    assert _pair_gain(np.full((10, 10), 500.0), np.full((10, 10), 100.0), sel) == 2.0
+    sim = simulate_capture("tabletop", n_views=24, width=128, height=96, seed=0)
+    views = [dataclasses.replace(v, image=np.clip(v.get_image() * (1.2 if k % 2 else 1.0),
+                                                  0, 255).astype(np.uint8), loader=None)
+             for k, v in enumerate(sim.capture.views)]
+    plane = np.array([0.0, 0.0, 1.0, -sim.scene.support_z])
+    target = np.mean(sim.capture.gt_ooi_points, axis=0)
+    found = {}
+    for exposure in (False, True):
+        pc = PlaneConsistency(views, plane, target,
+                              PlaneCheckConfig(enabled=True, max_deg=40.0, exposure=exposure))
+        obj_hit = obj_n = floor_hit = floor_n = 0
+        for i in range(0, 24, 4):
+            v = views[i]
+            fl = pc.floor_map(i, (0, 96, 0, 128))
+            near = ndimage.binary_dilation(v.gt_mask, iterations=8) & ~v.gt_mask
+            obj_hit += (fl & v.gt_mask).sum()
+            obj_n += v.gt_mask.sum()
+            floor_hit += (fl & near).sum()
+            floor_n += near.sum()
+        found[exposure] = floor_hit / floor_n
+        print("exposure", exposure, "object called floor", obj_hit / obj_n,
+              "floor near it called floor", found[exposure])
+        assert obj_hit < 0.02 * obj_n
+    assert found[True] > 1.25 * found[False]  # measured 0.119 -> 0.165
+
+
 @pytest.mark.parametrize("dist", [(), (-0.12, 0.03, 0.001, -0.002, 0.0)])
 def test_plane_check_samples_in_float32_where_float64_would(dist):
     """``PointSet``: the plane check projects each crop's points into ~8 neighbours in float32

@@ -117,7 +117,7 @@ def preset(method: str) -> dict:
                            "upsample": 2, "hull_cut_grown": True,
                            "border_leak_hull": True, "hull_thin_agree": 0.3,
                            "hull_thin_distinct": 4, "behind_cut": "mask",
-                           "behind_open": True, "outline_vote": True,
+                           "behind_open": True, "outline_vote": True, "grown_open": 1,
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,

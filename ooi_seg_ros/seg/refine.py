@@ -64,6 +64,9 @@ class RefineConfig:
     voronoi: bool = False  # silhouette pixels nearer a background than an object observation
     # start as probably-background instead of probably-object
     opening: int = 1  # iterations of the binary opening that removes specks from the result
+    grown_open: int = 0  # > 0: what GrabCut grew past the splatted silhouette is also opened
+    # with a square of side 2 r + 1 (a painted floor line, 2-3 px wide and diagonal, survives
+    # the 3x3 cross of ``opening``; GrabCut follows white lines from a white wing tip)
     upsample: int = 1  # GrabCut on the crop enlarged this many times (labels nearest, image
     # bicubic) when the crop is below max_side, its result averaged back (>= half the sub-
     # pixels object): a thin part 2 px wide is 4 px wide to the graph cut's smoothness term
@@ -415,6 +418,10 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
                              interpolation=cv2.INTER_NEAREST).astype(bool)
         if cfg.opening > 0:
             res = ndimage.binary_opening(res, iterations=int(cfg.opening))
+        if cfg.grown_open > 0:
+            r = int(cfg.grown_open)
+            body = ndimage.binary_opening(res, np.ones((2 * r + 1, 2 * r + 1), bool))
+            res &= crop | body
         if cfg.border_leak:
             res = _drop_border_leaks(res, crop, m, box)
         if floor is not None and fl_obj.any():
