@@ -62,9 +62,6 @@ def test_density_relative_cut_takes_what_is_sparse_however_many_points_that_is()
         assert len(took) == pytest.approx(0.05 * len(x), abs=1)
         if n_specks == 10:  # a 5% share of 3,410 points is 170: 160 of them the object's
             assert (took < len(obj)).sum() > 100
-    from ooi_seg_ros.seg.pipeline import make_config
-    d = make_config("ours").density  # the cut ``ours`` uses since session 48
-    assert d.relative_cut == 0.1 and d.drop_fraction == 0.0
 
 
 def test_density_options_out_of_range_are_a_config_error():
