@@ -23,10 +23,13 @@ that many points whatever they are: once an earlier stage had taken the specks, 
 into the aircraft's wing tips and a sparse plant's leaves. On the 25 simulator clouds
 measured every point on the object lay above 0.138 of its cloud's median, and 0.1 took none
 of them; with ``noise.widen_unclustered`` it lifts the stool's seeds 0-5 from 0.901 / 0.971
-to 0.910 / 0.988. It is not the default because four refinement tests on the small
-depth-proxy clouds (test_seg_pipeline.py: upsample, band_gaps, seed_cover, the GrabCut
-iteration split) lose the gains they assert under it, not yet understood (BENCHMARKS,
-Segmentation > Session 45).
+to 0.910 / 0.988. It is not the default. On the real bonsai photos (session 48) it keeps 257
+more points at the object's rim, and the masks pick up table cloth beside the stand and wall
+above the crown in many views (163 of 289 masks change by over 5%; by eye mostly background
+joins), which no simulator figure shows. The demo's held-out PSNR also drops 0.56 dB (white
+parking-line stubs in one held-out view). Four refinement tests on the small depth-proxy
+clouds lose the gains they assert under it: their uniform depth samples keep more points, of
+lower mask precision (BENCHMARKS, Segmentation > Sessions 45, 48).
 """
 
 from __future__ import annotations
