@@ -64,6 +64,39 @@ def test_density_relative_cut_takes_what_is_sparse_however_many_points_that_is()
             assert (took < len(obj)).sum() > 100
 
 
+def test_density_sparse_share_flags_the_kept_points_the_share_would_cut():
+    # the relative cut keeps the sparse wing; ``sparse_share`` names the kept points that the
+    # sparsest-5% share would have taken (positions in the kept array), and only those
+    rng = np.random.default_rng(4)
+    body = rng.uniform([-0.5, -0.2, -0.2], [0.5, 0.2, 0.2], (3000, 3))
+    wing = rng.uniform([0.5, -0.05, -1.5], [0.8, 0.05, 1.5], (400, 3))
+    x = np.vstack([body, wing, rng.uniform(-6, 6, (10, 3))])
+    base = dict(seed=1, drop_fraction=0.0, first_peak=False, relative_cut=0.1)
+    keep, p = density_filter(x, DensityConfig(**base, sparse_share=0.05))
+    plain, q = density_filter(x, DensityConfig(**base))
+    assert np.array_equal(keep, plain) and "sparse" not in q  # the kept set is the cut's
+    share, _ = density_filter(x, DensityConfig(seed=1, drop_fraction=0.05, first_peak=False))
+    flagged = keep[p["sparse"]]
+    assert len(flagged) > 100  # most of the share's 170 points are the wing's, kept here
+    assert np.array_equal(np.sort(flagged), np.setdiff1d(keep, share))
+
+
+def test_capped_discs_draw_inside_the_uncapped_silhouette():
+    from ooi_seg_ros.core.types import TriMesh
+    from ooi_seg_ros.seg.masks import render_masks
+    views = _ring_views()
+    xyz = np.vstack([_sphere(400), _sphere(8, r=0.8, seed=1)])  # a sphere and 8 far points
+    small = np.zeros(len(xyz), bool)
+    small[400:] = True
+    cfg = MaskConfig(mode="points")
+    empty = TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32))
+    wide, pw = render_masks(views, cfg, empty, xyz)
+    tight, pt = render_masks(views, cfg, empty, xyz, small)
+    assert pt["capped_discs"] == 8 and "capped_discs" not in pw
+    assert all((tight[k] <= wide[k]).all() for k in wide)
+    assert sum(int(wide[k].sum() - tight[k].sum()) for k in wide) > 0
+
+
 def test_density_options_out_of_range_are_a_config_error():
     from ooi_seg_ros.core.types import InputError
     from ooi_seg_ros.seg.pipeline import make_config
@@ -71,6 +104,8 @@ def test_density_options_out_of_range_are_a_config_error():
         make_config("ours", {"density": {"drop_fraction": 1.5}})
     with pytest.raises(InputError, match="relative_cut"):
         make_config("ours", {"density": {"relative_cut": -0.1}})
+    with pytest.raises(InputError, match="sparse_share"):
+        make_config("ours", {"density": {"sparse_share": 1.0}})
 
 
 def test_density_truncated_kernel_ranks_like_dense_kde():

@@ -408,9 +408,12 @@ def hull_carve(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndarray,
     return {k: m & hull[k] for k, m in masks.items()}, dict(p, applied=True)
 
 
-def render_masks(views: list[View], cfg: MaskConfig, mesh: TriMesh, xyz: np.ndarray
-                 ) -> tuple[dict[str, np.ndarray], dict]:
-    """Masks for every view by ``cfg.mode`` (+ optional hull consistency)."""
+def render_masks(views: list[View], cfg: MaskConfig, mesh: TriMesh, xyz: np.ndarray,
+                 small: Optional[np.ndarray] = None) -> tuple[dict[str, np.ndarray], dict]:
+    """Masks for every view by ``cfg.mode`` (+ optional hull consistency).
+
+    ``small`` (optional, bool [N]): points mode -- these points' discs are no wider than the
+    median disc (``density.sparse_share``)."""
     params: dict = {"mode": cfg.mode}
     if cfg.mode == "mesh":
         masks = mesh_masks(mesh, views, cfg)
@@ -418,6 +421,10 @@ def render_masks(views: list[View], cfg: MaskConfig, mesh: TriMesh, xyz: np.ndar
         radii = point_radii(xyz, cfg.splat_k, cfg.splat_scale, cfg.splat_local,
                             cfg.splat_local_factor)
         params["median_radius"] = float(np.median(radii)) if len(radii) else 0.0
+        if small is not None and len(radii):
+            small = np.asarray(small, bool)
+            radii = np.where(small, np.minimum(radii, params["median_radius"]), radii)
+            params["capped_discs"] = int(small.sum())
         cov = None
         if cfg.splat_shape == "ellipse":
             cov = point_covariances(xyz, radii, cfg.splat_pca_k, cfg.splat_cross_sigmas)

@@ -154,6 +154,9 @@ def make_config(method: Optional[str] = None, overrides: Optional[dict] = None
     if not 0.0 <= float(d.relative_cut) <= 1.0:
         raise InputError(f"bad segmentation config: density.relative_cut={d.relative_cut}; it "
                          f"is a fraction of the median density in [0, 1] (0 = off)")
+    if not 0.0 <= float(d.sparse_share) < 1.0:
+        raise InputError(f"bad segmentation config: density.sparse_share={d.sparse_share}; "
+                         f"it is a share of the points in [0, 1) (0 = off)")
     for sub in (cfg.density, cfg.floor, cfg.refine):
         sub.seed = cfg.seed
     return cfg
@@ -312,16 +315,21 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
     stage_clouds["input"] = (cloud.xyz, cloud.rgb)
     full = cloud
     sel = np.arange(len(cloud))
+    small_disc = np.zeros(len(full), bool)  # points whose mask discs are capped (density)
 
     def run(name: str, fn) -> None:
         nonlocal cloud, sel
         t0 = time.perf_counter()
         keep, p = fn(cloud.xyz)
         timings[name] = time.perf_counter() - t0
+        keep = np.asarray(keep, np.int64)
+        if "sparse" in p:  # density.sparse_share: kept points whose discs are capped
+            p = dict(p)
+            small_disc[sel[keep[p.pop("sparse")]]] = True
+            p["sparse_points"] = int(small_disc.sum())
         params[name] = p
         if "warning" in p:
             warnings.append(f"{name}: {p['warning']}")
-        keep = np.asarray(keep, np.int64)
         sel = sel[keep]
         cloud = cloud.subset(keep)
         counts[name] = int(len(cloud))
@@ -422,7 +430,8 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         warnings.append("mesh is empty; masks fall back to point splats")
         cfg.masks.mode = "points"
     t0 = time.perf_counter()
-    masks, params["masks"] = render_masks(mask_views, cfg.masks, mesh, cloud.xyz)
+    masks, params["masks"] = render_masks(mask_views, cfg.masks, mesh, cloud.xyz,
+                                          small_disc[sel] if small_disc.any() else None)
     timings["masks"] = time.perf_counter() - t0
     if cfg.refine.enabled:
         t0 = time.perf_counter()
@@ -444,8 +453,10 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
             params["background_planes"] = extra.tolist()
             plane = np.vstack([plane[None], extra])
         try:
+            seeds = (~small_disc[sel] if small_disc.any() and not cfg.density.sparse_seeds
+                     else None)
             masks, params["refine"] = refine_masks(masks, views, cloud, full.subset(removed),
-                                                   cfg.refine, plane, target, context)
+                                                   cfg.refine, plane, target, context, seeds)
         except ImportError:
             warnings.append("refine: opencv-python-headless is not installed; masks are the "
                             "unrefined point silhouettes")

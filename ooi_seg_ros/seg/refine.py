@@ -1129,9 +1129,12 @@ def point_support(xyz: np.ndarray, masks: dict[str, np.ndarray], views: list[Vie
 
 def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                  background: SfmCloud, cfg: RefineConfig, plane: Optional[np.ndarray] = None,
-                 target: Optional[np.ndarray] = None, context_masks: Optional[dict] = None
-                 ) -> tuple[dict, dict]:
+                 target: Optional[np.ndarray] = None, context_masks: Optional[dict] = None,
+                 seed_points: Optional[np.ndarray] = None) -> tuple[dict, dict]:
     """GrabCut-refined masks {key: bool [H,W]} and counts of refined/rejected views.
+
+    ``seed_points`` (optional, bool [len(ooi)]): with ``fg_seeds="projections"``, only these
+    OOI points' projections seed the object (``density.sparse_seeds`` false).
 
     Only the views with a key in ``masks`` are refined (the result holds just those); the
     other ``views`` are context (neighbours of the plane check). A view's result does not
@@ -1205,7 +1208,7 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         out, refined, rejected = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg, floor, cache,
                                                models, params)
     elif cfg.fg_seeds in ("projections", "consistent"):
-        xyz = ooi.xyz
+        xyz = ooi.xyz if seed_points is None else ooi.xyz[np.asarray(seed_points, bool)]
         if cfg.fg_seeds == "consistent":
             first, _, _ = _grabcut_pass(masks, views, fg_obs, bg_obs, cfg, floor, cache)
             support = point_support(xyz, first, views)
