@@ -98,7 +98,8 @@ def preset(method: str) -> dict:
                 "refine": {"enabled": False}, "stability": {"draws": 0}}
     if method == "ours":
         return {"method": "ours", "roi": {"enabled": True},
-                "density": {"drop_fraction": 0.05, "relative_cut": 0.0, "first_peak": False},
+                "density": {"drop_fraction": 0.0, "relative_cut": 0.1, "first_peak": False,
+                            "sparse_share": 0.05, "sparse_seeds": False},
                 "floor": {"mode": "support", "support_select": "nearest",
                           "band_interior": True, "support_min_of": "remaining",
                           "band_local": 4},
