@@ -14,9 +14,10 @@ from ooi_seg_ros.seg.proxy import depth_proxy_cloud
 from ooi_seg_ros.sim import simulate_capture
 
 # The density stage of ``ours`` before session 51 (the sparsest 5%, not a tenth of the median
-# density with the sparsest 5% of what that keeps given capped discs and no seeds). Four refinement tests below measure an option's gain on a depth-proxy cloud and
-# pin it: the proxy's uniform depth samples keep ~5% more points under the relative cut, of
-# lower precision (stool proxy 226 vs 214 points, mask precision 0.760 vs 0.789), and the
+# density with the sparsest 5% of what that keeps given capped discs and no seeds). Four
+# refinement tests below measure an option's gain on a depth-proxy cloud and pin it: the
+# proxy's uniform depth samples keep ~5% more points under the relative cut, of lower
+# precision (stool proxy 226 vs 214 points, mask precision 0.760 vs 0.789), and the
 # options' proxy gains shrink or move under that cloud (upsample on the stool +0.019 ->
 # +0.001 IoU; seed thinning +0.014 -> -0.007; the iteration split's agreement mean 0.95 ->
 # 0.81; the band's gain over four stool proxies rests on one of them, IoU -0.007 / +0.141 /
