@@ -1727,3 +1727,31 @@ def test_colour_mismatch_is_the_median_difference_over_the_views_framing_a_point
     assert mis[0] == 0  # red in 5 of 6 views: the median difference is 0
     assert mis[1] == 200  # blue where every view shows red (or green)
     assert np.isnan(mis[2])
+
+
+def test_projected_seeds_whose_pixel_is_far_from_their_point_colour_are_dropped():
+    # ``refine.seed_colour`` (an option, off): a red bar on green ground; the points on the bar
+    # carry its red, and those that project onto the ground (as a point on a thin part does
+    # when its projection lands one pixel beside it) lose their seed; the rest keep theirs.
+    from ooi_seg_ros.core.types import CameraIntrinsics, Pose
+    from ooi_seg_ros.seg.refine import _colour_seeds
+    cam = CameraIntrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    img = np.zeros((48, 64, 3), np.uint8)
+    img[:] = (40, 150, 40)
+    img[:, 28:36] = (200, 30, 30)
+    rng = np.random.default_rng(0)
+    u = np.concatenate([rng.uniform(28.6, 34.4, 30), rng.uniform(40, 60, 6)])
+    v = rng.uniform(5, 43, 36)
+    z = 2.0
+    xyz = np.stack([(u - cam.cx) * z / cam.fx, (v - cam.cy) * z / cam.fy, np.full(36, z)], 1)
+    rgb = np.tile(np.float32([200, 30, 30]), (36, 1)) + rng.normal(0, 3, (36, 3)).astype(
+        np.float32)
+    view = View("a", 0, cam, Pose.identity(), img)
+    fg, dropped = _colour_seeds(xyz, rgb, [view], {"a": np.ones((48, 64), bool)}, 3.0)
+    assert dropped == 6
+    assert len(fg[0]) == 30 and np.all((fg[0][:, 0] > 28) & (fg[0][:, 0] < 35))
+    # a view with no mask gets no seeds; a factor large enough keeps every seed
+    fg, dropped = _colour_seeds(xyz, rgb, [view], {}, 3.0)
+    assert len(fg[0]) == 0 and dropped == 0
+    fg, dropped = _colour_seeds(xyz, rgb, [view], {"a": np.ones((48, 64), bool)}, 1e6)
+    assert dropped == 0 and len(fg[0]) == 36
