@@ -481,6 +481,43 @@ def test_skin_under_the_support_interior_ignores_a_cloth_hanging_at_its_edge():
     assert (k1 >= 13000).sum() >= 790
 
 
+def test_a_pot_s_foot_in_the_floor_s_skin_stays_when_it_touches_the_object():
+    """``layer_attach``: a stool's cloth top scatters its SfM points a few cm above and below
+    the plane, so the band removes the lowest few cm of a pot standing on it. A point in that
+    layer within reach of a point above the band is the object's foot and stays; the skin's
+    points away from the object still go."""
+    rng = np.random.default_rng(2)
+    r = 0.4 * np.sqrt(rng.uniform(0, 1, 4000))
+    a = rng.uniform(0, 2 * np.pi, 4000)
+    top = np.column_stack([r * np.cos(a), r * np.sin(a),
+                           0.5 + np.clip(rng.laplace(0, 0.008, 4000), -0.04, 0.04)])
+    a = rng.uniform(0, 2 * np.pi, 600)
+    pot = np.column_stack([0.08 * np.cos(a), 0.08 * np.sin(a), rng.uniform(0.5, 0.65, 600)])
+    leaves = _sphere(600, r=0.12, c=(0, 0, 0.75), seed=2)
+    xyz = np.vstack([top, pot, leaves])
+    views = _ring_views(target=(0, 0, 0.65))
+    centers = np.array([v.pose.t for v in views])
+    up = -np.mean([v.pose.R[:, 1] for v in views], axis=0)
+    target = np.array([0, 0, 0.65])
+    k0, p0 = floor_filter(xyz, FloorConfig(mode="support"), centers, up, target)
+    k1, p1 = floor_filter(xyz, FloorConfig(mode="support", layer_attach=2.0), centers, up,
+                          target)
+    assert p1["band"] == p0["band"] and p0["band"] > 1.5 * p0["band_inliers"]
+    z = xyz[:, 2] - 0.5
+    zp = z[4000:4600]
+    foot = 4000 + np.nonzero((zp > p0["band_inliers"]) & (zp < p0["band"]))[0]
+    assert len(foot) > 40 and not np.isin(foot, k0).any()  # the band took the foot
+    assert np.isin(foot, k1).mean() > 0.9  # attached to the pot above it: kept
+    # the skin away from the pot: only what touches a speck of skin the band already left
+    far = np.nonzero(np.hypot(xyz[:4000, 0], xyz[:4000, 1]) > 0.2)[0]
+    joined = np.setdiff1d(far[np.isin(far, k1)], k0)
+    specks = far[np.isin(far, k0)]
+    reach = 2.0 * p1["threshold"]
+    assert len(joined) < 0.01 * len(far)
+    assert all(np.linalg.norm(xyz[specks] - xyz[j], axis=1).min() <= reach for j in joined)
+    assert np.isin(np.arange(4000, 5200), k1).sum() >= np.isin(np.arange(4000, 5200), k0).sum()
+
+
 def test_central_cluster_does_not_merge_a_neighbour_beyond_its_reach():
     rng = np.random.default_rng(5)
     obj = _sphere(1500, r=0.3, c=(0, 0, 0), seed=1)

@@ -79,7 +79,8 @@ class FloorConfig:
     # the points just below the plane (only floor lies below it, so its underside measures how
     # thick the floor's skin of SfM points is; 0 disables)
     layer_attach: float = 0.0  # support mode: keep points between the inliers' band and the
-    # floor's thickness that lie within this x threshold of a point above it (0 = off)
+    # floor's thickness under the interior (the layer a pot's or a tyre's foot stands in) that
+    # lie within this x threshold of a point above the band (0 = off)
     band_mirror_window: float = 10.0  # support mode: "just below" = within this x threshold
     support_select: str = "most"  # support mode, of the planes that qualify: "most" inliers,
     # or the "nearest" below the convergence point among those whose inliers surround its foot
@@ -317,7 +318,9 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
             local[ring] = rb
             ring_bands.append(round(rb, 6))
     keep = sd > local
-    layer = (sd > band_inliers) & ~keep
+    # the layer is the interior's skin only: beyond the interior the rings' thicker bands
+    # reach far background (crates, a wall's foot) that would attach to background above them
+    layer = (sd > band_inliers) & (sd <= band) & ~keep
     if cfg.layer_attach > 0 and layer.any() and keep.any():
         # the object's foot (a pot's base, a tyre) lies in the layer between the inliers' band
         # and the floor's thickness: layer points touching a point above the band stay
