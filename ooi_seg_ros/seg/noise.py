@@ -228,8 +228,19 @@ def _held_up(xyz: np.ndarray, keep: np.ndarray, grown: np.ndarray,
 
 def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float,
             up_plane: Optional[np.ndarray] = None) -> tuple[np.ndarray, dict]:
-    """DBSCAN selection, with eps widened while the selection stays compact (see module)."""
+    """DBSCAN selection, with eps widened while the selection stays compact (see module),
+    then grown by one hop of ``grow_scale`` spacings (when > 0)."""
     sp = spacing(xyz, cfg.min_samples)
+    keep, p = _dbscan_widened(xyz, cfg, target, radius, up_plane, sp)
+    if cfg.grow_scale > 0:
+        grown = grow_selection(xyz, keep, cfg, sp)
+        p["grown"] = int(len(grown) - len(keep))
+        keep = grown
+    return keep, p
+
+
+def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float,
+                    up_plane: Optional[np.ndarray], sp: float) -> tuple[np.ndarray, dict]:
     keep, p = _dbscan_at(xyz, cfg, target, radius, cfg.eps_scale * sp, sp)
     p["eps_scale"] = round(cfg.eps_scale, 3)
     settle = cfg.settle_change > 0
@@ -320,6 +331,22 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
     return keep, p
 
 
+def grow_selection(xyz: np.ndarray, keep: np.ndarray, cfg: NoiseConfig, sp: float
+                   ) -> np.ndarray:
+    """``keep`` (indices into ``xyz``) plus the points within ``grow_scale`` spacings of a
+    kept point: one hop, applied once to the final selection (not to the widening's trial
+    sets, whose extents decide what joins)."""
+    keep = np.asarray(keep, np.int64)
+    if cfg.grow_scale <= 0 or len(keep) == 0 or len(keep) == len(xyz) or sp <= 0:
+        return keep
+    inside = np.zeros(len(xyz), bool)
+    inside[keep] = True
+    out = np.nonzero(~inside)[0]
+    d, _ = cKDTree(xyz[keep]).query(xyz[out], k=1,
+                                    distance_upper_bound=cfg.grow_scale * sp)
+    return np.sort(np.concatenate([keep, out[np.isfinite(d)]]))
+
+
 def _pair_estimate(xyz: np.ndarray, eps: float, sample: int = 2000, seed: int = 0) -> float:
     """Estimated number of (ordered) point pairs closer than ``eps`` (DBSCAN's work)."""
     n = len(xyz)
@@ -395,15 +422,7 @@ def _dbscan_at(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: fl
     else:
         keep = labels == ids[np.argmax(counts)]
         main_n = int(keep.sum())
-    main_share = main_n / max(int(keep.sum()), 1)  # before any growth (grow_scale)
-    if cfg.grow_scale > 0 and keep.any() and not keep.all():
-        # one hop of a wider radius: points a gap too wide for eps from the kept cluster (a
-        # leaf tip, a strut) come back, a whole neighbouring object does not
-        tree = cKDTree(xyz[keep])
-        reach = cfg.grow_scale * sp
-        d_keep, _ = tree.query(xyz[~keep], k=1, distance_upper_bound=reach)
-        out = np.nonzero(~keep)[0]
-        keep[out[np.isfinite(d_keep)]] = True
+    main_share = main_n / max(int(keep.sum()), 1)
     return np.nonzero(keep)[0], {"eps": float(eps), "clusters": int(len(ids)),
                                  "unclustered": round(float((labels < 0).mean()), 4),
                                  "chosen_clusters": int(len(np.unique(labels[keep]))),
