@@ -70,6 +70,33 @@ def test_residual_option_takes_badly_fitting_points_out_of_the_ooi_not_the_choic
     assert len(c.ooi_cloud) == len(a.ooi_cloud) - res["dropped_ooi"]
 
 
+def test_grow_scale_takes_the_noise_stage_s_near_points_back_after_the_choice(aircraft):
+    # an option (off in ours; BENCHMARKS, Session 53): one hop of grow_scale spacings from
+    # the chosen OOI set into the noise stage's input, once, after the point stages; the
+    # proxy cloud has a few points DBSCAN leaves just past eps and more far out
+    from scipy.spatial import cKDTree
+    from ooi_seg_ros.seg.density import spacing
+    sim, cloud = aircraft
+    a = segment(sim.capture, cloud, make_config("ours", {"refine": {"enabled": False}}))
+    assert "grow" not in a.counts
+    pre, ooi = a.stage_clouds["density"][0], a.ooi_cloud.xyz
+    d, _ = cKDTree(ooi).query(pre)
+    left = d[d > 1e-9] / spacing(pre, 8)
+    near = int((left <= 3.0).sum())
+    assert 0 < near < len(left)
+    opts = {"refine": {"enabled": False}, "noise": {"grow_scale": 3.0}}
+    b = segment(sim.capture, cloud, make_config("ours", opts))
+    assert b.counts["noise"] == a.counts["noise"]  # the choice itself is the same
+    assert b.params["noise"]["grown"] == near and len(b.ooi_cloud) == len(ooi) + near
+    assert cKDTree(b.ooi_cloud.xyz).query(ooi)[0].max() < 1e-9
+    capped = b.params["masks"].get("capped_discs", 0)  # density's sparse points
+    opts["noise"]["grow_sparse"] = True  # their discs capped too
+    c = segment(sim.capture, cloud, make_config("ours", opts))
+    assert len(c.ooi_cloud) == len(b.ooi_cloud)
+    # (some of them may be among density's sparsest already)
+    assert capped < c.params["masks"]["capped_discs"] <= capped + near
+
+
 def test_an_ooi_of_few_points_warns(aircraft):
     sim, cloud = aircraft
     r = segment(sim.capture, cloud, make_config("ours", {"min_ooi_points": 10 ** 6,

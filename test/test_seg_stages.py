@@ -1796,25 +1796,30 @@ def test_projected_seeds_whose_pixel_is_far_from_their_point_colour_are_dropped(
 
 def test_grow_scale_brings_back_a_thin_part_s_lone_points_once_not_a_neighbour():
     # a T-tail's stabiliser: a few lone SfM points a little past DBSCAN's eps from the fin's
-    # top, noise at every eps the widening tries. One hop of grow_scale spacings, applied to
-    # the final selection only, brings them back; a neighbour farther out stays out, and the
-    # widening itself (its trial sets' extents decide what joins) is the same with or without
+    # top, noise at every eps the widening tries. One hop of grow_scale spacings from the
+    # chosen set (the pipeline applies it once, after the noise stage and its tie-break)
+    # brings them back; a neighbour farther out stays out, and so does a neighbour's own
+    # cluster within reach when only unclustered points may join
     from ooi_seg_ros.seg.noise import grow_selection
     body = _sphere(2000, r=0.3, c=(0, 0, 0), seed=1)
     sp = spacing(body, 8)
-    up = np.array([0.0, 0.0, 1.0])
-    lone = np.array([up * (0.3 + 2.5 * sp), [0, 0.5, 0.5], [0, -0.5, 0.5]], float)
-    lone[1:] = lone[1:] / np.linalg.norm(lone[1:], axis=1, keepdims=True) * (0.3 + 2.5 * sp)
-    nb = _sphere(300, r=0.1, c=(0.3 + 0.1 + 8 * sp, 0, 0), seed=3)
-    xyz = np.vstack([body, lone, nb])
+    lone = np.array([[0, 0, 1], [0, 0.5, 0.5], [0, -0.5, 0.5]], float)
+    lone = lone / np.linalg.norm(lone, axis=1, keepdims=True) * (0.3 + 2.5 * sp)
+    far = _sphere(300, r=0.1, c=(0.3 + 0.1 + 8 * sp, 0, 0), seed=3)
+    near = _sphere(300, r=0.1, c=(-0.3 - 0.1 - 2.5 * sp, 0, 0), seed=4)
+    xyz = np.vstack([body, lone, far, near])
     kw = dict(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=2.0,
               settle_change=0.15, max_extent_growth=1.25)  # the widening stops short of them
-    k0, p0 = noise_filter(xyz, NoiseConfig(**kw), np.zeros(3), 2.0)
-    k1, p1 = noise_filter(xyz, NoiseConfig(grow_scale=3.0, **kw), np.zeros(3), 2.0)
-    assert len(p0["eps_scales_tried"]) > 1
-    assert (k0 < 2000).sum() == 2000 and not np.isin([2000, 2001, 2002], k0).any()
-    assert np.isin([2000, 2001, 2002], k1).all() and (k1 >= 2003).sum() == 0
-    assert p1["grown"] == 3 and p0["eps_scales_tried"] == p1["eps_scales_tried"]
-    assert sorted(k1.tolist()) == sorted(k0.tolist() + [2000, 2001, 2002])
-    # zero is off; the helper keeps its input when nothing is in reach
-    assert grow_selection(xyz, k0, NoiseConfig(), sp).tolist() == sorted(k0.tolist())
+    k0, p0 = noise_filter(xyz, NoiseConfig(grow_scale=3.0, **kw), np.zeros(3), 2.0)
+    assert len(p0["eps_scales_tried"]) > 1 and "grown" not in p0  # the stage does not grow
+    assert (k0 < 2000).sum() == 2000 and len(k0) == 2000
+    cfg = NoiseConfig(grow_scale=3.0, **kw)
+    sp_in = spacing(xyz, cfg.min_samples)
+    g_all = grow_selection(xyz, k0, cfg, sp_in)
+    g_unc = grow_selection(xyz, k0, cfg, sp_in, p0["eps"])
+    lone_i, near_i = [2000, 2001, 2002], np.arange(2303, 2603)
+    assert np.isin(lone_i, g_all).all() and np.isin(lone_i, g_unc).all()
+    assert not np.isin(np.arange(2003, 2303), g_all).any()  # the far neighbour: out of reach
+    assert np.isin(near_i, g_all).any() and not np.isin(near_i, g_unc).any()
+    assert sorted(g_unc.tolist()) == sorted(k0.tolist() + lone_i)
+    assert grow_selection(xyz, k0, NoiseConfig(), sp_in).tolist() == sorted(k0.tolist())

@@ -100,6 +100,21 @@ floor, one cluster, 20% in none) kept
 and widened to 57. It uses the stage's own persistence share, so it adds no constant: a
 sixth of the points outside every cluster means the set has not settled. With the default
 density cut it changes no OOI set of the 25 simulator clouds, the demo or the bonsai.
+
+``grow_scale`` (an option, off) adds, once, after this stage and the stability tie-break chose
+the OOI set (``pipeline.py``), the points of this stage's input within ``grow_scale``
+spacings of a kept point (``grow_selection``). Why: an aircraft's T-tail stabiliser has 2-3
+lone SfM points 1.4-3.4 spacings past the fin's top, noise at every eps the widening tries,
+so its masks miss the stabiliser. Measured (session 53, BENCHMARKS): at 3 spacings the four
+aircraft captures under the recall bar rise over it, and the stool gains; but on a thin or
+sparse object the lone points are mostly floaters, and one that seeds GrabCut brings a whole
+bush or patch of lawn into the bicycle's masks (IoU -0.04 to -0.12), while on the toy car
+the hop reaches the edge of the clutter beside it (-0.08 to -0.16).
+``grow_unclustered_only`` keeps the clutter's own clusters out (the toy car's added points
+that were in another DBSCAN cluster were all off the object), and ``grow_sparse`` caps the
+grown points' discs and keeps them out of GrabCut's object seeds as density's sparse points:
+together they leave the toy car and the bicycle near the default but give the aircraft's
+gain back too. Lone points alone do not tell a thin part from a floater.
 """
 
 from __future__ import annotations
@@ -123,8 +138,11 @@ class NoiseConfig:
     select: str = "largest"  # "largest" (paper) | "central" (nearest the convergence point)
     sor_neighbours: int = 16  # SOR: neighbours per point
     sor_std_ratio: float = 2.0  # SOR: mean-distance threshold in standard deviations
-    grow_scale: float = 0.0  # after selection, add points within this x the median
-    # min_samples-NN distance of a kept point (one hop; 0 = off)
+    grow_scale: float = 0.0  # after this stage and the tie-break, add points of its input
+    # within this x the median min_samples-NN distance of a kept point (one hop; 0 = off)
+    grow_unclustered_only: bool = False  # grow_scale: only points DBSCAN left in no cluster
+    grow_sparse: bool = False  # grow_scale: the grown points are flagged as density's sparse
+    # points are (capped mask discs; no GrabCut object seeds unless density.sparse_seeds)
     merge_reach_quantile: float = 0.98  # central: the main cluster's reach = this quantile
     # of its points' distances to the convergence point; other clusters within it are merged
     # (0: within the frame radius instead)
@@ -228,15 +246,9 @@ def _held_up(xyz: np.ndarray, keep: np.ndarray, grown: np.ndarray,
 
 def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float,
             up_plane: Optional[np.ndarray] = None) -> tuple[np.ndarray, dict]:
-    """DBSCAN selection, with eps widened while the selection stays compact (see module),
-    then grown by one hop of ``grow_scale`` spacings (when > 0)."""
+    """DBSCAN selection, with eps widened while the selection stays compact (see module)."""
     sp = spacing(xyz, cfg.min_samples)
-    keep, p = _dbscan_widened(xyz, cfg, target, radius, up_plane, sp)
-    if cfg.grow_scale > 0:
-        grown = grow_selection(xyz, keep, cfg, sp)
-        p["grown"] = int(len(grown) - len(keep))
-        keep = grown
-    return keep, p
+    return _dbscan_widened(xyz, cfg, target, radius, up_plane, sp)
 
 
 def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float,
@@ -331,16 +343,23 @@ def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radiu
     return keep, p
 
 
-def grow_selection(xyz: np.ndarray, keep: np.ndarray, cfg: NoiseConfig, sp: float
-                   ) -> np.ndarray:
+def grow_selection(xyz: np.ndarray, keep: np.ndarray, cfg: NoiseConfig, sp: float,
+                   eps: Optional[float] = None) -> np.ndarray:
     """``keep`` (indices into ``xyz``) plus the points within ``grow_scale`` spacings of a
-    kept point: one hop, applied once to the final selection (not to the widening's trial
-    sets, whose extents decide what joins)."""
+    kept point: one hop. The pipeline applies it once, to the OOI set the noise stage and
+    the stability tie-break chose (not to the widening's trial sets, whose extents decide
+    what joins, nor to the tie-break's candidates). With ``eps`` (the selection's DBSCAN eps) only
+    the points DBSCAN left in no cluster at that eps: a neighbouring object's cluster stays
+    out however near its edge comes."""
     keep = np.asarray(keep, np.int64)
     if cfg.grow_scale <= 0 or len(keep) == 0 or len(keep) == len(xyz) or sp <= 0:
         return keep
     inside = np.zeros(len(xyz), bool)
     inside[keep] = True
+    if eps is not None:
+        labels, _ = dbscan_labels(xyz, eps, cfg.min_samples, cfg.grid_above_pairs,
+                                  cfg.grid_cell_scale)
+        inside |= labels >= 0
     out = np.nonzero(~inside)[0]
     d, _ = cKDTree(xyz[keep]).query(xyz[out], k=1,
                                     distance_upper_bound=cfg.grow_scale * sp)

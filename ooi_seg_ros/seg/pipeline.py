@@ -46,12 +46,12 @@ import numpy as np
 from ..core import config as cfgmod
 from ..core.geometry import cameras_convergence_point
 from ..core.types import Capture, InputError, SfmCloud, TriMesh
-from .density import DensityConfig, density_filter
+from .density import DensityConfig, density_filter, spacing
 from .floor import FloorConfig, floor_filter
 from .masks import MaskConfig, hull_carve, render_masks
 from .mesh import MeshConfig, build_mesh
 from .metrics import scene_metrics
-from .noise import NoiseConfig, noise_filter
+from .noise import NoiseConfig, grow_selection, noise_filter
 from .photo import background_planes
 from .refine import RefineConfig, refine_masks
 from .residual import ResidualConfig, colour_mismatch, residual_filter
@@ -386,6 +386,25 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         timings["stability"] = time.perf_counter() - t0
         if w:
             warnings.append(f"stability: {w}")
+    if cfg.noise.grow_scale > 0 and cfg.noise.method == "dbscan" and len(sel):
+        # an option (off in ours): one hop of grow_scale spacings from the chosen OOI set
+        # back into the noise stage's input (a thin part's lone points past eps: a T-tail's
+        # stabiliser), once, after the tie-break chose the set
+        t0 = time.perf_counter()
+        sub = full.xyz[noise_in]
+        local = np.nonzero(np.isin(noise_in, sel))[0]
+        eps = params.get("noise", {}).get("eps") if cfg.noise.grow_unclustered_only else None
+        grown = grow_selection(sub, local, cfg.noise, spacing(sub, cfg.noise.min_samples), eps)
+        added = noise_in[np.setdiff1d(grown, local)]
+        params.setdefault("noise", {})["grown"] = int(len(added))
+        if len(added):
+            if cfg.noise.grow_sparse:
+                small_disc[added] = True
+            sel = np.union1d(sel, added)
+            cloud = full.subset(sel)
+            stage_clouds["grow"] = (cloud.xyz, cloud.rgb)
+        counts["grow"] = int(len(cloud))
+        timings["grow"] = time.perf_counter() - t0
     # an option (off in ours): points that belong to neither side -- multi-view points whose
     # rays agree worse than the cloud's typical track (``residual.py``) -- leave the OOI cloud
     # (its masks' splats and sure seeds) and the background's seeds, after the point stages

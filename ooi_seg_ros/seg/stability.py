@@ -59,7 +59,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .density import spacing
-from .noise import NoiseConfig, _dbscan_at, _off_centre, grow_selection
+from .noise import NoiseConfig, _dbscan_at, _off_centre
 
 
 @dataclass
@@ -211,7 +211,6 @@ def centred_alternative(xyz: np.ndarray, chosen: np.ndarray, scales: list,
     sets: list = [(None, np.asarray(chosen, np.int64))]
     for sc in sorted(set(scales)):
         k, _ = _dbscan_at(xyz, noise_cfg, target, radius, sc * sp, sp)
-        k = grow_selection(xyz, k, noise_cfg, sp)  # as the noise stage's own choice is
         if len(k) >= 4:
             sets.append((sc, np.asarray(k, np.int64)))
     for k in copies or []:
