@@ -1795,8 +1795,9 @@ def test_projected_seeds_whose_pixel_is_far_from_their_point_colour_are_dropped(
 
 
 def test_grow_scale_brings_back_a_thin_part_s_lone_points_once_not_a_neighbour():
-    # a T-tail's stabiliser: a few lone SfM points a little past DBSCAN's eps from the fin's
-    # top, noise at every eps the widening tries. One hop of grow_scale spacings from the
+    # an object's lone points (an aircraft's gear wheels, the edge of its T-tail): a few SfM
+    # points a little past DBSCAN's eps from the kept set, noise at every eps the widening
+    # tries. One hop of grow_scale spacings from the
     # chosen set (the pipeline applies it once, after the noise stage and its tie-break)
     # brings them back; a neighbour farther out stays out, and so does a neighbour's own
     # cluster within reach when only unclustered points may join

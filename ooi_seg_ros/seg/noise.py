@@ -103,10 +103,12 @@ density cut it changes no OOI set of the 25 simulator clouds, the demo or the bo
 
 ``grow_scale`` (an option, off) adds, once, after this stage and the stability tie-break chose
 the OOI set (``pipeline.py``), the points of this stage's input within ``grow_scale``
-spacings of a kept point (``grow_selection``). Why: an aircraft's T-tail stabiliser has 2-3
-lone SfM points 1.4-3.4 spacings past the fin's top, noise at every eps the widening tries,
-so its masks miss the stabiliser. Measured (session 53, BENCHMARKS): at 3 spacings the four
-aircraft captures under the recall bar rise over it, and the stool gains; but on a thin or
+spacings of a kept point (``grow_selection``). Why: the noise stage leaves an object's lone
+points past eps out -- an aircraft's landing-gear wheels, points at the edge of its T-tail's
+stabiliser 1.4-3.4 spacings past the fin's top -- noise at every eps the widening tries.
+Measured (session 53, BENCHMARKS): at 3 spacings the four aircraft captures under the recall
+bar rise over it (the gear's points seed the dark belly beside it; the stabiliser's edge
+points do not bring the plate back), and the stool gains; but on a thin or
 sparse object the lone points are mostly floaters, and one that seeds GrabCut brings a whole
 bush or patch of lawn into the bicycle's masks (IoU -0.04 to -0.12), while on the toy car
 the hop reaches the edge of the clutter beside it (-0.08 to -0.16).

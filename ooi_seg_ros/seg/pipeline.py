@@ -388,8 +388,8 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
             warnings.append(f"stability: {w}")
     if cfg.noise.grow_scale > 0 and cfg.noise.method == "dbscan" and len(sel):
         # an option (off in ours): one hop of grow_scale spacings from the chosen OOI set
-        # back into the noise stage's input (a thin part's lone points past eps: a T-tail's
-        # stabiliser), once, after the tie-break chose the set
+        # back into the noise stage's input (an object's lone points past eps: an aircraft's
+        # landing-gear wheels), once, after the tie-break chose the set
         t0 = time.perf_counter()
         sub = full.xyz[noise_in]
         local = np.nonzero(np.isin(noise_in, sel))[0]
