@@ -95,6 +95,11 @@ def test_grow_scale_takes_the_noise_stage_s_near_points_back_after_the_choice(ai
     assert len(c.ooi_cloud) == len(b.ooi_cloud)
     # (some of them may be among density's sparsest already)
     assert capped < c.params["masks"]["capped_discs"] <= capped + near
+    # with the colour vote only those whose pixels look like the object's in most views
+    opts["noise"] = {"grow_scale": 3.0, "grow_colour_vote": 0.5}
+    e = segment(sim.capture, cloud, make_config("ours", opts))
+    n = e.params["noise"]
+    assert n["grown"] + n["grow_refused"] == near and len(e.ooi_cloud) == len(ooi) + n["grown"]
 
 
 def test_an_ooi_of_few_points_warns(aircraft):

@@ -1824,3 +1824,21 @@ def test_grow_scale_brings_back_a_thin_part_s_lone_points_once_not_a_neighbour()
     assert np.isin(near_i, g_all).any() and not np.isin(near_i, g_unc).any()
     assert sorted(g_unc.tolist()) == sorted(k0.tolist() + lone_i)
     assert grow_selection(xyz, k0, NoiseConfig(), sp_in).tolist() == sorted(k0.tolist())
+
+
+def test_colour_vote_tells_a_point_on_the_object_from_a_floater_beside_it():
+    # every view shows a red object in its centre over a green background: a point at the
+    # object projects onto red in every view framing it, a point off to the side onto green
+    from ooi_seg_ros.seg.residual import colour_vote
+    views = _ring_views(8, size=(64, 48))
+    for v in views:
+        img = np.zeros((48, 64, 3), np.uint8)
+        img[:] = (40, 160, 40)
+        img[18:30, 26:38] = (200, 30, 30)
+        v.image = img
+    obj = np.array([[200, 30, 30], [190, 40, 35], [210, 25, 20]], np.uint8)
+    bg = np.array([[40, 160, 40], [50, 150, 45], [30, 170, 35], [120, 120, 120]], np.uint8)
+    xyz = np.array([[0, 0, 0.5], [0.0, 0.0, 1.4], [0, 0, -50]], float)
+    vote = colour_vote(xyz, obj, bg, views, k=2)
+    assert vote[0] == 1.0 and vote[1] == 0.0 and np.isnan(vote[2])  # the last: no view frames it
+    assert np.isnan(colour_vote(xyz, obj[:0], bg, views)).all()  # no reference colours

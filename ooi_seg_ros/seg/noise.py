@@ -143,6 +143,9 @@ class NoiseConfig:
     grow_scale: float = 0.0  # after this stage and the tie-break, add points of its input
     # within this x the median min_samples-NN distance of a kept point (one hop; 0 = off)
     grow_unclustered_only: bool = False  # grow_scale: only points DBSCAN left in no cluster
+    grow_colour_vote: float = 0.0  # grow_scale: > 0, a point joins only when in at least
+    # this share of the views framing it its pixel is nearer the OOI points' colours than the
+    # rest of the cloud's (residual.colour_vote)
     grow_sparse: bool = False  # grow_scale: the grown points are flagged as density's sparse
     # points are (capped mask discs; no GrabCut object seeds unless density.sparse_seeds)
     merge_reach_quantile: float = 0.98  # central: the main cluster's reach = this quantile

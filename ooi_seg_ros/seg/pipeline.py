@@ -54,7 +54,7 @@ from .metrics import scene_metrics
 from .noise import NoiseConfig, grow_selection, noise_filter
 from .photo import background_planes
 from .refine import RefineConfig, refine_masks
-from .residual import ResidualConfig, colour_mismatch, residual_filter
+from .residual import ResidualConfig, colour_mismatch, colour_vote, residual_filter
 from .roi import RoiConfig, frame_radius, roi_filter
 from .stability import (StabilityConfig, centred_alternative, copies_choice,
                         stability_check, stability_warning)
@@ -396,6 +396,16 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         eps = params.get("noise", {}).get("eps") if cfg.noise.grow_unclustered_only else None
         grown = grow_selection(sub, local, cfg.noise, spacing(sub, cfg.noise.min_samples), eps)
         added = noise_in[np.setdiff1d(grown, local)]
+        if cfg.noise.grow_colour_vote > 0 and len(added):
+            # only points whose pixels look like the object in most views framing them
+            rest = np.ones(len(full), bool)
+            rest[sel] = False
+            rest[added] = False
+            vote = colour_vote(full.xyz[added], full.rgb[sel], full.rgb[rest], views,
+                               seed=cfg.seed)
+            ok = np.nan_to_num(vote, nan=0.0) >= cfg.noise.grow_colour_vote
+            params.setdefault("noise", {})["grow_refused"] = int((~ok).sum())
+            added = added[ok]
         params.setdefault("noise", {})["grown"] = int(len(added))
         if len(added):
             if cfg.noise.grow_sparse:

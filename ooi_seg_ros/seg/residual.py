@@ -33,6 +33,7 @@ of the aircraft's gain (BENCHMARKS, Segmentation > Session 38).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -109,4 +110,46 @@ def colour_mismatch(xyz: np.ndarray, rgb: np.ndarray, views: list[View]) -> np.n
     seen = np.isfinite(diffs).any(axis=0)  # nanmedian warns on an all-NaN column
     if seen.any():
         out[seen] = np.nanmedian(diffs[:, seen], axis=0)
+    return out
+
+
+def colour_vote(xyz: np.ndarray, obj_rgb: np.ndarray, bg_rgb: np.ndarray, views: list[View],
+                k: int = 5, max_ref: int = 20000, seed: int = 0) -> np.ndarray:
+    """Share [N] of the views framing each point whose pixel there is nearer (mean distance
+    to its ``k`` nearest) the object's point colours ``obj_rgb`` than the background's
+    ``bg_rgb`` (NaN where no view frames it). A point on the object shows the object's
+    colours in most views; a floater beside a thin object shows what lies behind it."""
+    from scipy.spatial import cKDTree
+    xyz = np.asarray(xyz, float).reshape(-1, 3)
+    rng = np.random.default_rng(seed)
+
+    def tree(rgb: np.ndarray) -> Optional[cKDTree]:
+        rgb = np.asarray(rgb, float).reshape(-1, 3)
+        if len(rgb) > max_ref:
+            rgb = rgb[rng.choice(len(rgb), max_ref, replace=False)]
+        return cKDTree(rgb) if len(rgb) else None
+
+    t_obj, t_bg = tree(obj_rgb), tree(bg_rgb)
+    out = np.full(len(xyz), np.nan)
+    if t_obj is None or t_bg is None or not len(xyz):
+        return out
+    votes = np.zeros(len(xyz))
+    seen = np.zeros(len(xyz))
+    for v in views:
+        uv, z = project_distorted(xyz, v.camera, v.pose)
+        ui, vi = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        c = v.camera
+        ok = (z > 1e-9) & (ui >= 0) & (ui < c.width) & (vi >= 0) & (vi < c.height)
+        if not ok.any():
+            continue
+        px = v.get_image()[vi[ok].astype(int), ui[ok].astype(int)].astype(float)
+        if px.ndim == 1:  # a grey image: grey reference colours
+            px = np.repeat(px[:, None], 3, axis=1)
+        kk_o, kk_b = min(k, t_obj.n), min(k, t_bg.n)
+        d_o = np.asarray(t_obj.query(px[:, :3], k=kk_o)[0]).reshape(len(px), -1).mean(axis=1)
+        d_b = np.asarray(t_bg.query(px[:, :3], k=kk_b)[0]).reshape(len(px), -1).mean(axis=1)
+        votes[ok] += d_o < d_b
+        seen[ok] += 1
+    has = seen > 0
+    out[has] = votes[has] / seen[has]
     return out
