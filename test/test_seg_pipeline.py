@@ -102,6 +102,21 @@ def test_grow_scale_takes_the_noise_stage_s_near_points_back_after_the_choice(ai
     assert n["grown"] + n["grow_refused"] == near and len(e.ooi_cloud) == len(ooi) + n["grown"]
 
 
+def test_ooi_colour_vote_takes_points_that_look_like_the_background_out_of_the_ooi(aircraft):
+    # an option (off in ours; BENCHMARKS, Session 53): after the point stages, OOI points
+    # whose pixels are nearer the rest of the cloud's colours in most views leave the OOI
+    from scipy.spatial import cKDTree
+    sim, cloud = aircraft
+    a = segment(sim.capture, cloud, make_config("ours", {"refine": {"enabled": False}}))
+    assert "colour_vote" not in a.counts
+    opts = {"refine": {"enabled": False}, "residual": {"ooi_colour_vote": 0.5}}
+    b = segment(sim.capture, cloud, make_config("ours", opts))
+    gone = b.params["ooi_colour_vote"]["dropped"]
+    assert b.counts["noise"] == a.counts["noise"] and 0 < gone < len(a.ooi_cloud) / 2
+    assert len(b.ooi_cloud) == len(a.ooi_cloud) - gone == b.counts["colour_vote"]
+    assert cKDTree(a.ooi_cloud.xyz).query(b.ooi_cloud.xyz)[0].max() < 1e-9  # a subset
+
+
 def test_an_ooi_of_few_points_warns(aircraft):
     sim, cloud = aircraft
     r = segment(sim.capture, cloud, make_config("ours", {"min_ooi_points": 10 ** 6,

@@ -415,6 +415,21 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
             stage_clouds["grow"] = (cloud.xyz, cloud.rgb)
         counts["grow"] = int(len(cloud))
         timings["grow"] = time.perf_counter() - t0
+    if cfg.residual.ooi_colour_vote > 0 and len(sel) > 4:
+        # an option (off in ours): OOI points whose pixels look like the rest of the cloud's
+        # colours in most views framing them leave the OOI cloud (not to the background seeds)
+        t0 = time.perf_counter()
+        rest = np.ones(len(full), bool)
+        rest[sel] = False
+        vote = colour_vote(full.xyz[sel], full.rgb[sel], full.rgb[rest], views, seed=cfg.seed)
+        ok = ~(np.nan_to_num(vote, nan=1.0) < cfg.residual.ooi_colour_vote)
+        params["ooi_colour_vote"] = {"dropped": int((~ok).sum())}
+        if ok.sum() >= 4 and not ok.all():
+            sel = sel[ok]
+            cloud = full.subset(sel)
+            stage_clouds["colour_vote"] = (cloud.xyz, cloud.rgb)
+        counts["colour_vote"] = int(len(cloud))
+        timings["colour_vote"] = time.perf_counter() - t0
     # an option (off in ours): points that belong to neither side -- multi-view points whose
     # rays agree worse than the cloud's typical track (``residual.py``) -- leave the OOI cloud
     # (its masks' splats and sure seeds) and the background's seeds, after the point stages

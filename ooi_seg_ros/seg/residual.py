@@ -54,6 +54,10 @@ class ResidualConfig:
     # points: a stray point lands on background in many views, the only point of a thin part
     # lands on that part (0 = off)
     min_tracks: int = 10  # fewer 3+-view points than this: no reliable median, keep all
+    ooi_colour_vote: float = 0.0  # > 0 (independent of ``enabled``): an OOI point leaves the
+    # OOI cloud when in fewer than this share of the views framing it its pixel is nearer the
+    # OOI points' colours than the rest of the cloud's (``colour_vote``): a floater beside a
+    # thin object shows the lawn behind it (0 = off)
 
 
 def dof_corrected_error(cloud: SfmCloud) -> np.ndarray:
