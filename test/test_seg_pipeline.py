@@ -115,6 +115,11 @@ def test_ooi_colour_vote_takes_points_that_look_like_the_background_out_of_the_o
     assert b.counts["noise"] == a.counts["noise"] and 0 < gone < len(a.ooi_cloud) / 2
     assert len(b.ooi_cloud) == len(a.ooi_cloud) - gone == b.counts["colour_vote"]
     assert cKDTree(a.ooi_cloud.xyz).query(b.ooi_cloud.xyz)[0].max() < 1e-9  # a subset
+    # or they stay, flagged as density's sparse points (capped discs, no object seeds)
+    opts["residual"]["ooi_colour_vote_sparse"] = True
+    c = segment(sim.capture, cloud, make_config("ours", opts))
+    assert len(c.ooi_cloud) == len(a.ooi_cloud) and c.params["ooi_colour_vote"]["flagged"] == gone
+    assert c.params["masks"].get("capped_discs", 0) > a.params["masks"].get("capped_discs", 0)
 
 
 def test_an_ooi_of_few_points_warns(aircraft):

@@ -424,7 +424,10 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         vote = colour_vote(full.xyz[sel], full.rgb[sel], full.rgb[rest], views, seed=cfg.seed)
         ok = ~(np.nan_to_num(vote, nan=1.0) < cfg.residual.ooi_colour_vote)
         params["ooi_colour_vote"] = {"dropped": int((~ok).sum())}
-        if ok.sum() >= 4 and not ok.all():
+        if cfg.residual.ooi_colour_vote_sparse:
+            small_disc[sel[~ok]] = True
+            params["ooi_colour_vote"] = {"flagged": int((~ok).sum())}
+        elif ok.sum() >= 4 and not ok.all():
             sel = sel[ok]
             cloud = full.subset(sel)
             stage_clouds["colour_vote"] = (cloud.xyz, cloud.rgb)

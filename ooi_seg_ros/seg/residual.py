@@ -58,6 +58,8 @@ class ResidualConfig:
     # OOI cloud when in fewer than this share of the views framing it its pixel is nearer the
     # OOI points' colours than the rest of the cloud's (``colour_vote``): a floater beside a
     # thin object shows the lawn behind it (0 = off)
+    ooi_colour_vote_sparse: bool = False  # ooi_colour_vote: flag such points as density's
+    # sparse points (capped discs, no GrabCut object seeds) instead of taking them out
 
 
 def dof_corrected_error(cloud: SfmCloud) -> np.ndarray:
