@@ -120,6 +120,13 @@ def test_ooi_colour_vote_takes_points_that_look_like_the_background_out_of_the_o
     c = segment(sim.capture, cloud, make_config("ours", opts))
     assert len(c.ooi_cloud) == len(a.ooi_cloud) and c.params["ooi_colour_vote"]["flagged"] == gone
     assert c.params["masks"].get("capped_discs", 0) > a.params["masks"].get("capped_discs", 0)
+    # and only those whose pixels disagree with their own colour too (BENCHMARKS, Session 54)
+    opts["residual"]["ooi_colour_vote_mismatch"] = 1.0
+    d = segment(sim.capture, cloud, make_config("ours", opts))
+    assert 0 < d.params["ooi_colour_vote"]["flagged"] < gone
+    opts["residual"]["ooi_colour_vote_mismatch"] = 1e6  # none disagree that much
+    e = segment(sim.capture, cloud, make_config("ours", opts))
+    assert e.params["ooi_colour_vote"]["flagged"] == 0
 
 
 def test_an_ooi_of_few_points_warns(aircraft):

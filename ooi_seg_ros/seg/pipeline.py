@@ -423,6 +423,12 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         rest[sel] = False
         vote = colour_vote(full.xyz[sel], full.rgb[sel], full.rgb[rest], views, seed=cfg.seed)
         ok = ~(np.nan_to_num(vote, nan=1.0) < cfg.residual.ooi_colour_vote)
+        if cfg.residual.ooi_colour_vote_mismatch > 0 and not ok.all():
+            # only where its pixels disagree with its own colour too (photo-inconsistent)
+            mm = colour_mismatch(full.xyz[sel], full.rgb[sel], views)
+            if np.isfinite(mm).any():
+                lim = cfg.residual.ooi_colour_vote_mismatch * np.nanmedian(mm)
+                ok |= ~(np.nan_to_num(mm, nan=0.0) > lim)
         params["ooi_colour_vote"] = {"dropped": int((~ok).sum())}
         if cfg.residual.ooi_colour_vote_sparse:
             small_disc[sel[~ok]] = True

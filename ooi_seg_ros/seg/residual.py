@@ -60,6 +60,10 @@ class ResidualConfig:
     # thin object shows the lawn behind it (0 = off)
     ooi_colour_vote_sparse: bool = False  # ooi_colour_vote: flag such points as density's
     # sparse points (capped discs, no GrabCut object seeds) instead of taking them out
+    ooi_colour_vote_mismatch: float = 0.0  # ooi_colour_vote: > 0, a low-vote point counts
+    # only when its pixels also disagree with its own colour (``colour_mismatch``) by more
+    # than this x the OOI points' median: a floater shows a different background in each
+    # view, a point on a grey object over a grey floor shows its own grey (0 = off)
 
 
 def dof_corrected_error(cloud: SfmCloud) -> np.ndarray:
