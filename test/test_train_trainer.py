@@ -45,6 +45,54 @@ def test_train_holdout_counts_and_improves(sim):
     assert h.render[~h.mask].mean() < h.render[h.mask].mean()
 
 
+def test_heldout_is_also_scored_in_the_ground_truth_mask(sim):
+    """A computed mask's false positives are scored against the photo (background an
+    object-only model does not render); with the capture's own truth the report says how
+    good the object is. Same render, two masks; no truth -> no second figure."""
+    from dataclasses import replace
+
+    from scipy.ndimage import binary_dilation
+    pts = sim.gt_ooi_points[::40]
+    wide = {v.key: binary_dilation(v.gt_mask, iterations=3) for v in sim.views}
+    r = train(sim, wide, pts, _cfg(iterations=10, eval_every=0))
+    for h in r.heldout:
+        assert h.psnr_gt is not None and h.ssim_gt is not None
+        assert h.psnr_gt != h.psnr
+    m = r.metrics()
+    assert m["heldout_psnr_gt_mask"] == pytest.approx(np.mean([h.psnr_gt for h in r.heldout]))
+    exact = train(sim, {v.key: v.gt_mask for v in sim.views}, pts,
+                  _cfg(iterations=5, eval_every=0))
+    assert all(h.psnr_gt == pytest.approx(h.psnr) for h in exact.heldout)
+    bare = replace(sim, views=[replace(v, gt_mask=None) for v in sim.views])
+    r = train(bare, wide, pts, _cfg(iterations=5, eval_every=0))
+    assert all(h.psnr_gt is None for h in r.heldout)
+    assert r.metrics()["heldout_psnr_gt_mask"] is None
+
+
+def test_sparse_cloud_is_filled_near_the_visual_hull_surface(sim):
+    """A bare OOI cloud (an SfM cloud misses plain panels) is topped up to init_fill with
+    points inside every mask that sees them, near a mask's outline; off with init_fill 0."""
+    from ooi_seg_ros.train import mcmc
+    from ooi_seg_ros.train.trainer import TrainResult, _hull_surface_points, _prepare
+    masks = {v.key: v.gt_mask for v in sim.views}
+    cfg = _cfg(iterations=1, eval_every=0, init_fill=300)
+    frames, _ = _prepare(sim, masks, cfg, TrainResult(model=None, config=cfg))
+    few = sim.gt_ooi_points[::400]
+    extra = _hull_surface_points(frames, 300, few, 1.5, torch.Generator().manual_seed(0))
+    assert 200 <= len(extra) <= 300
+    frac, seen = mcmc.outside_mask_fraction(torch.from_numpy(extra).float(),
+                                            [f.cam for f in frames], [f.mask for f in frames])
+    assert float(frac.max()) == 0.0 and int(seen.min()) >= len(frames) // 4
+    # near the object's surface: within a few true-surface spacings of it
+    d = np.linalg.norm(extra[:, None] - sim.gt_ooi_points[None, ::4], axis=2).min(1)
+    span = np.ptp(sim.gt_ooi_points, axis=0).max()
+    assert np.median(d) < 0.05 * span
+    r = train(sim, masks, few, cfg)
+    assert r.init_filled == 300 - len(few) and r.metrics()["init_filled"] == r.init_filled
+    r = train(sim, masks, few, _cfg(iterations=1, eval_every=0, init_fill=0))
+    assert r.init_filled == 0
+
+
 def test_drops_and_skips_are_counted(sim):
     from dataclasses import replace
     views = list(sim.views)

@@ -233,14 +233,18 @@ def write_outputs(result: TrainResult, masks: Optional[dict], out: Path,
         Image.fromarray(h.render).save(out / "heldout" / f"{h.key}.png")
     write_training_bag(out / "training.mcap", result, masks)
     rep = result.metrics()
-    rep["heldout"] = [{"key": h.key, "psnr": h.psnr, "ssim": h.ssim} for h in result.heldout]
+    rep["heldout"] = [{"key": h.key, "psnr": h.psnr, "ssim": h.ssim, "psnr_gt_mask": h.psnr_gt,
+                       "ssim_gt_mask": h.ssim_gt} for h in result.heldout]
     rep["evals"] = result.evals
     rep["lpips"] = _lpips(result, lpips_weights)
     rep.update(extra or {})
     (out / "report.json").write_text(json.dumps(rep, indent=1))
     cfgmod.write_yaml(result.config, out / "config.yaml")
     rows = "".join(
-        f"<tr><td>{html.escape(h.key)}<br>PSNR {h.psnr:.2f} dB<br>SSIM {h.ssim:.3f}</td>"
+        f"<tr><td>{html.escape(h.key)}<br>PSNR {h.psnr:.2f} dB<br>SSIM {h.ssim:.3f}"
+        + ("" if h.psnr_gt is None else
+           f"<br>in the ground-truth mask:<br>PSNR {h.psnr_gt:.2f} dB<br>SSIM {h.ssim_gt:.3f}")
+        + "</td>"
         f"<td><img src='data:image/png;base64,{_png_b64(np.concatenate([h.gt, h.render], 1))}'>"
         "</td></tr>" for h in result.heldout)
     summary = "".join(f"<li>{html.escape(str(k))}: {html.escape(str(v))}</li>"
@@ -313,6 +317,10 @@ def run(args: argparse.Namespace) -> int:
     psnr, ssim = rep["heldout_psnr"], rep["heldout_ssim"]
     psnr_s = "n/a" if psnr is None else f"{psnr:.2f} dB"
     ssim_s = "n/a" if ssim is None else f"{ssim:.3f}"
+    gt_s = ""
+    if rep.get("heldout_psnr_gt_mask") is not None:
+        gt_s = (f" (in the ground-truth masks: {rep['heldout_psnr_gt_mask']:.2f} dB, SSIM "
+                f"{rep['heldout_ssim_gt_mask']:.3f})")
     print(f"wrote {args.out}: {rep['n_gaussians']} Gaussians, held-out masked PSNR {psnr_s}, "
-          f"SSIM {ssim_s}, {rep['its_per_s']:.2f} it/s")
+          f"SSIM {ssim_s}{gt_s}, {rep['its_per_s']:.2f} it/s")
     return 0
