@@ -6,7 +6,8 @@
 ``DIR/heldout/<key>.png`` (renders over black, as ``ooi-seg train`` writes them) are compared,
 inside the simulator's ground-truth mask, with the captured photo and with
 ``SimCapture.object_truth`` -- the view as an exact object-only model would render it (outline
-pixels scaled by the object's coverage instead of mixed with the background behind). The
+pixels scaled by the object's coverage instead of mixed with the background behind) -- and
+with the photo in the mask's interior (eroded by one pixel, as ``bench_train.py`` does). The
 capture is re-simulated from its parameters (the demo bag is aircraft, 60 views, 320x240,
 seed 0), so both are exact.
 """
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from scipy.ndimage import binary_erosion
 
 from ooi_seg_ros.sim import simulate_capture
 
@@ -46,13 +48,15 @@ def main() -> None:
         v = sim.capture.views[i]
         r = np.asarray(Image.open(p).convert("RGB"), np.float32) / 255.0
         photo = v.image.astype(np.float32) / 255.0
-        rows.append((_psnr(r, photo, v.gt_mask), _psnr(r, sim.object_truth(i), v.gt_mask)))
+        rows.append((_psnr(r, photo, v.gt_mask), _psnr(r, sim.object_truth(i), v.gt_mask),
+                     _psnr(r, photo, binary_erosion(v.gt_mask))))
     if not rows:
         raise SystemExit(f"no held-out renders in {a.train_dir / 'heldout'}")
     t = np.array(rows)
     print(f"{len(t)} held-out views, PSNR inside the ground-truth mask:")
     print(f"  vs the photo              {t[:, 0].mean():6.2f} dB")
     print(f"  vs the object-only truth  {t[:, 1].mean():6.2f} dB")
+    print(f"  vs the photo, interior    {t[:, 2].mean():6.2f} dB (mask eroded by 1 px)")
 
 
 if __name__ == "__main__":

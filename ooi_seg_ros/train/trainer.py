@@ -87,9 +87,9 @@ class TrainConfig:
     init_fill: int = 5000  # when the OOI cloud has fewer points, add points near the surface of
     # the training masks' visual hull up to this many (capped at max_gaussians; 0 = off): an
     # SfM cloud is dense on texture and bare on plain panels, and Gaussians grown from far away
-    # reach those late. On the demo bag (634 SfM points) +0.7 dB / +0.027 SSIM held-out in the
-    # true masks, the same as starting from 5,000 true surface points (BENCHMARKS, Training,
-    # session 57)
+    # reach those late. On the demo bag (634 SfM points) +0.65 dB / +0.024 SSIM held-out in
+    # the true masks, the same as starting from 5,000 true surface points; the stool (66
+    # points) +4.5 dB (BENCHMARKS, Training, sessions 57-58)
     init_fill_band_px: float = 1.5  # "near the surface": within this many pixels of a mask's
     # outline in at least one training view (inside every mask that sees the point)
     edge_background: bool = False  # on the mask's inner ring (mask pixels next to background),
