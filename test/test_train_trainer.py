@@ -339,3 +339,22 @@ def test_edge_background_is_the_local_background_on_the_outline(sim):
     masks = {v.key: v.gt_mask for v in sim.views}
     r = train(sim, masks, sim.gt_ooi_points[::40], _cfg(edge_background=True))
     assert r.history[-1]["loss"] < r.history[0]["loss"] and np.isfinite(r.heldout[0].psnr)
+
+
+def test_background_penalty_spares_a_margin_past_the_mask():
+    from ooi_seg_ros.train.loss import mask_crop
+    from ooi_seg_ros.train.raster_common import RasterCamera
+    from ooi_seg_ros.train.trainer import _far_from_mask, _target
+
+    mask = torch.zeros(40, 50, dtype=torch.bool)
+    mask[18:22, 20:30] = True
+    far = _far_from_mask(mask, 2)
+    assert not bool((far & mask).any())
+    assert not bool(far[16, 18]) and not bool(far[23, 31])  # 2 px out: spared
+    assert bool(far[15, 20]) and bool(far[20, 32])  # 3 px out: penalised
+    cam = RasterCamera(torch.eye(3), torch.zeros(3), 40.0, 40.0, 25.0, 20.0, 50, 40)
+    image = torch.rand(40, 50, 3)
+    tg = _target(cam, image, mask, crop=True, far_margin=2)
+    rows, cols = mask_crop(mask, 5)
+    assert tg.far is not None and torch.equal(tg.far, far[rows, cols])
+    assert _target(cam, image, mask, crop=True).far is None

@@ -46,6 +46,9 @@ class TrainConfig:
     opacity_reg: float = 0.01  # MCMC L1 opacity penalty
     scale_reg: float = 0.01  # MCMC L1 scale penalty
     bg_alpha_reg: float = 0.0  # penalty on opacity outside the mask (removes haze; costs PSNR)
+    bg_alpha_margin_px: int = 0  # ... only on pixels more than this many pixels outside the
+    # mask: a computed mask's outline is uncertain by a pixel or two (recall ~0.97), and the
+    # object's own pixels just past it should not be pushed transparent
     noise_lr: float = 5e5  # MCMC SGLD noise scale (times the position lr)
     refine_every: int = 100  # relocate / add Gaussians every this many steps
     refine_start: int = 100  # first refinement step
@@ -204,6 +207,8 @@ class _Target:
     mask: torch.Tensor  # [h, w] bool
     edge: Optional[torch.Tensor] = None  # [h, w] bool: outline pixels with a local background
     edge_bg: Optional[torch.Tensor] = None  # [h, w, 3] that background (zero off ``edge``)
+    far: Optional[torch.Tensor] = None  # [h, w] bool: pixels the background-opacity penalty
+    # covers (outside the mask by more than ``bg_alpha_margin_px``); None = outside the mask
 
 
 @dataclass
@@ -256,18 +261,27 @@ def edge_background(image: torch.Tensor, mask: torch.Tensor, reach: int = 3
     return edge, bg * edge[..., None].to(image.dtype)
 
 
+def _far_from_mask(mask: torch.Tensor, margin: int) -> torch.Tensor:
+    """Pixels more than ``margin`` pixels (chessboard distance) outside ``mask``."""
+    m = mask.float()[None, None]
+    grown = torch.nn.functional.max_pool2d(m, 2 * margin + 1, 1, margin)[0, 0] > 0
+    return ~grown
+
+
 def _target(cam: RasterCamera, image: torch.Tensor, mask: torch.Tensor,
-            crop: bool, edges: bool = False) -> _Target:
+            crop: bool, edges: bool = False, far_margin: int = 0) -> _Target:
     """A training target, cut to the mask's bounding box grown by the SSIM window's half size
     when ``crop`` (the loss sees no pixel outside that box; ``photometric_loss`` crops the
-    same box); with ``edges``, the outline's local background (``edge_background``)."""
+    same box); with ``edges``, the outline's local background (``edge_background``); with
+    ``far_margin`` > 0, the pixels the background-opacity penalty covers."""
     edge, edge_bg = edge_background(image, mask) if edges else (None, None)
+    far = _far_from_mask(mask, far_margin) if far_margin > 0 else None
     if not crop:
-        return _Target(cam, image, mask, edge, edge_bg)
+        return _Target(cam, image, mask, edge, edge_bg, far)
     rows, cols = mask_crop(mask, SSIM_SIZE // 2)
     cut = (lambda t: None if t is None else t[rows, cols].contiguous())
     return _Target(_crop_camera(cam, rows, cols), image[rows, cols].contiguous(),
-                   mask[rows, cols].contiguous(), cut(edge), cut(edge_bg))
+                   mask[rows, cols].contiguous(), cut(edge), cut(edge_bg), cut(far))
 
 
 def _levels(f: _Frame, cfg: TrainConfig) -> list[_Target]:
@@ -275,7 +289,8 @@ def _levels(f: _Frame, cfg: TrainConfig) -> list[_Target]:
     at least half covered by the full-size mask)."""
     crop = cfg.crop_to_mask and not cfg.full_image
     edges = cfg.edge_background and not cfg.full_image
-    out = [_target(f.cam, f.image, f.mask, crop, edges)]
+    margin = cfg.bg_alpha_margin_px if cfg.bg_alpha_reg > 0 and not cfg.full_image else 0
+    out = [_target(f.cam, f.image, f.mask, crop, edges, margin)]
     if cfg.coarse_frac > 0:
         h2, w2 = f.cam.height // 2, f.cam.width // 2
         img = f.image[:2 * h2, :2 * w2].reshape(h2, 2, w2, 2, 3).mean((1, 3))
@@ -283,7 +298,7 @@ def _levels(f: _Frame, cfg: TrainConfig) -> list[_Target]:
         mask = cover >= 0.5
         if not bool(mask.any()):
             mask = cover > 0
-        out.append(_target(_half_camera(f.cam), img, mask, crop, edges))
+        out.append(_target(_half_camera(f.cam), img, mask, crop, edges, (margin + 1) // 2))
     return out
 
 
@@ -632,7 +647,7 @@ def train(capture: Capture, masks: Optional[dict[str, np.ndarray]],
             # background pixels carry no photometric loss, so nothing else stops Gaussians
             # from spilling opacity there: keep the object's silhouette inside the mask
             # (inside the rendered window: the mask's box when crop_to_mask)
-            outside = ~mask
+            outside = ~mask if tg.far is None else tg.far
             if bool(outside.any()):
                 total = total + cfg.bg_alpha_reg * out.alpha[outside].mean()
         opt.zero_grad(set_to_none=True)
