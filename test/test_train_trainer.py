@@ -60,13 +60,31 @@ def test_heldout_is_also_scored_in_the_ground_truth_mask(sim):
         assert h.psnr_gt != h.psnr
     m = r.metrics()
     assert m["heldout_psnr_gt_mask"] == pytest.approx(np.mean([h.psnr_gt for h in r.heldout]))
+    # opacity spilled past the mask: a wider mask leaves less of the render outside it
+    assert all(0.0 <= h.spill <= h.spill_gt <= 1.0 for h in r.heldout)
+    assert m["heldout_spill_gt_mask"] == pytest.approx(np.mean([h.spill_gt for h in r.heldout]))
     exact = train(sim, {v.key: v.gt_mask for v in sim.views}, pts,
                   _cfg(iterations=5, eval_every=0))
     assert all(h.psnr_gt == pytest.approx(h.psnr) for h in exact.heldout)
+    assert all(h.spill_gt == pytest.approx(h.spill) for h in exact.heldout)
     bare = replace(sim, views=[replace(v, gt_mask=None) for v in sim.views])
     r = train(bare, wide, pts, _cfg(iterations=5, eval_every=0))
-    assert all(h.psnr_gt is None for h in r.heldout)
+    assert all(h.psnr_gt is None and h.spill_gt is None for h in r.heldout)
     assert r.metrics()["heldout_psnr_gt_mask"] is None
+    assert r.metrics()["heldout_spill"] is not None
+
+
+def test_spill_is_the_opacity_share_past_the_mask_margin():
+    from ooi_seg_ros.train.trainer import _spill
+
+    mask = torch.zeros(20, 20, dtype=torch.bool)
+    mask[5:10, 5:10] = True
+    alpha = torch.zeros(20, 20)
+    alpha[5:10, 5:10] = 1.0  # 25 inside
+    alpha[11, 7] = 1.0  # 2 px out: outline blur, not counted
+    alpha[15, 15] = 0.5  # far out
+    assert _spill(alpha, mask) == pytest.approx(0.5 / 26.5)
+    assert _spill(torch.zeros(20, 20), mask) == 0.0
 
 
 def test_sparse_cloud_is_filled_near_the_visual_hull_surface(sim):

@@ -118,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
             trep = json.loads(rep.read_text())
             summary["train"] = {k: trep.get(k) for k in (
                 "heldout_psnr", "heldout_ssim", "heldout_psnr_gt_mask", "heldout_ssim_gt_mask",
+                "heldout_spill", "heldout_spill_gt_mask",
                 "n_gaussians", "iterations", "its_per_s",
                 "seconds", "cpu_seconds", "backend", "nan_steps", "dropped_no_pose")}
     summary["times_s"]["total"] = time.perf_counter() - t0

@@ -233,8 +233,9 @@ def write_outputs(result: TrainResult, masks: Optional[dict], out: Path,
         Image.fromarray(h.render).save(out / "heldout" / f"{h.key}.png")
     write_training_bag(out / "training.mcap", result, masks)
     rep = result.metrics()
-    rep["heldout"] = [{"key": h.key, "psnr": h.psnr, "ssim": h.ssim, "psnr_gt_mask": h.psnr_gt,
-                       "ssim_gt_mask": h.ssim_gt} for h in result.heldout]
+    rep["heldout"] = [{"key": h.key, "psnr": h.psnr, "ssim": h.ssim, "spill": h.spill,
+                       "psnr_gt_mask": h.psnr_gt, "ssim_gt_mask": h.ssim_gt,
+                       "spill_gt_mask": h.spill_gt} for h in result.heldout]
     rep["evals"] = result.evals
     rep["lpips"] = _lpips(result, lpips_weights)
     rep.update(extra or {})
@@ -244,6 +245,7 @@ def write_outputs(result: TrainResult, masks: Optional[dict], out: Path,
         f"<tr><td>{html.escape(h.key)}<br>PSNR {h.psnr:.2f} dB<br>SSIM {h.ssim:.3f}"
         + ("" if h.psnr_gt is None else
            f"<br>in the ground-truth mask:<br>PSNR {h.psnr_gt:.2f} dB<br>SSIM {h.ssim_gt:.3f}")
+        + ("" if h.spill is None else f"<br>opacity outside the mask: {100 * h.spill:.1f}%")
         + "</td>"
         f"<td><img src='data:image/png;base64,{_png_b64(np.concatenate([h.gt, h.render], 1))}'>"
         "</td></tr>" for h in result.heldout)

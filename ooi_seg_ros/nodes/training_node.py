@@ -353,6 +353,7 @@ class TrainingNode(Node):
             self.diag.timing("train", time.monotonic() - t0)
             m = result.metrics()
             self.diag.set("heldout_psnr", m.get("heldout_psnr"))
+            self.diag.set("heldout_spill", m.get("heldout_spill"))  # opacity past the masks
             self.diag.set_state(f"trained {len(result.model)} Gaussians in "
                                 f"{time.monotonic() - t0:.0f} s, held-out PSNR "
                                 f"{m.get('heldout_psnr')}")

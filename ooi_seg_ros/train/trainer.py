@@ -114,6 +114,9 @@ class HeldOutResult:
     mask: np.ndarray  # [H, W] bool
     psnr_gt: Optional[float] = None  # the same render scored inside the capture's own
     ssim_gt: Optional[float] = None  # ground-truth mask (simulator bags), when it has one
+    spill: Optional[float] = None  # share of the render's opacity outside the mask grown by
+    # SPILL_MARGIN_PX: haze and floaters an object-only model should not have
+    spill_gt: Optional[float] = None  # the same outside the ground-truth mask, when there is one
 
 
 @dataclass
@@ -148,10 +151,14 @@ class TrainResult:
         pg = [h.psnr_gt for h in self.heldout if h.psnr_gt is not None
               and math.isfinite(h.psnr_gt)]
         sg = [h.ssim_gt for h in self.heldout if h.ssim_gt is not None]
+        sp = [h.spill for h in self.heldout if h.spill is not None]
+        spg = [h.spill_gt for h in self.heldout if h.spill_gt is not None]
         return {"heldout_psnr": float(np.mean(ps)) if ps else None,
                 "heldout_ssim": float(np.mean(ss)) if ss else None,
                 "heldout_psnr_gt_mask": float(np.mean(pg)) if pg else None,
                 "heldout_ssim_gt_mask": float(np.mean(sg)) if sg else None,
+                "heldout_spill": float(np.mean(sp)) if sp else None,
+                "heldout_spill_gt_mask": float(np.mean(spg)) if spg else None,
                 "n_heldout": len(self.heldout), "n_train": len(self.train_keys),
                 "n_gaussians": len(self.model), "seconds": self.seconds,
                 "cpu_seconds": self.cpu_seconds,
@@ -513,18 +520,33 @@ class _Progress:
         sys.stderr.flush()
 
 
+SPILL_MARGIN_PX = 2  # the spill figure ignores opacity this close to the mask (outline blur)
+
+
+def _spill(alpha: torch.Tensor, mask: torch.Tensor) -> float:
+    """Share of a render's opacity that lies more than SPILL_MARGIN_PX outside ``mask``."""
+    total = float(alpha.sum())
+    if total <= 0:
+        return 0.0
+    return float(alpha[_far_from_mask(mask, SPILL_MARGIN_PX)].sum()) / total
+
+
 def _evaluate(model: GaussianModel, frames: list[_Frame], render: Callable,
               full_image: bool) -> list[HeldOutResult]:
     out = []
     black = torch.zeros(3)
     with torch.no_grad():
         for f in frames:
-            r = render(model, f.cam, black).image.clamp(0, 1).cpu()
+            o = render(model, f.cam, black)
+            r = o.image.clamp(0, 1).cpu()
+            alpha = o.alpha.detach().clamp(0, 1).cpu()
             m = None if full_image else f.mask
             gt = f.image if full_image else f.image * f.mask[..., None]
             h = HeldOutResult(f.key, masked_psnr(r, gt, f.mask), masked_ssim(r, gt, f.mask),
                               (r.numpy() * 255 + 0.5).astype(np.uint8),
                               (gt.numpy() * 255 + 0.5).astype(np.uint8), f.mask.numpy().copy())
+            if not full_image:
+                h.spill = _spill(alpha, f.mask)
             if f.gt_mask is not None:
                 # a computed mask's background pixels (its false positives) are scored against
                 # the photo, which an object-only model cannot render: the truth's mask says
@@ -532,6 +554,7 @@ def _evaluate(model: GaussianModel, frames: list[_Frame], render: Callable,
                 g = f.image * f.gt_mask[..., None]
                 h.psnr_gt = masked_psnr(r, g, f.gt_mask)
                 h.ssim_gt = masked_ssim(r, g, f.gt_mask)
+                h.spill_gt = _spill(alpha, f.gt_mask)
             out.append(h)
             del m
     return out
