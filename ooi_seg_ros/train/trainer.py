@@ -48,7 +48,10 @@ class TrainConfig:
     bg_alpha_reg: float = 0.0  # penalty on opacity outside the mask (removes haze; costs PSNR)
     bg_alpha_margin_px: int = 0  # ... only on pixels more than this many pixels outside the
     # mask: a computed mask's outline is uncertain by a pixel or two (recall ~0.97), and the
-    # object's own pixels just past it should not be pushed transparent
+    # object's own pixels just past it should not be pushed transparent. 0.1 with margin 2
+    # takes 55-90% of the held-out haze away on four product-path captures at -0.03..-0.21 dB
+    # (photo, true mask) but costs the tabletop 0.26 dB with true masks: an option
+    # (BENCHMARKS, Training, sessions 57-58)
     noise_lr: float = 5e5  # MCMC SGLD noise scale (times the position lr)
     refine_every: int = 100  # relocate / add Gaussians every this many steps
     refine_start: int = 100  # first refinement step
