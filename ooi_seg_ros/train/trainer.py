@@ -45,13 +45,16 @@ class TrainConfig:
     lambda_dssim: float = 0.2  # weight of D-SSIM in the photometric loss
     opacity_reg: float = 0.01  # MCMC L1 opacity penalty
     scale_reg: float = 0.01  # MCMC L1 scale penalty
-    bg_alpha_reg: float = 0.0  # penalty on opacity outside the mask (removes haze; costs PSNR)
-    bg_alpha_margin_px: int = 0  # ... only on pixels more than this many pixels outside the
+    bg_alpha_reg: float = 0.1  # penalty on opacity outside the mask (haze, streaks, fog)
+    bg_alpha_margin_px: int = 2  # ... only on pixels more than this many pixels outside the
     # mask: a computed mask's outline is uncertain by a pixel or two (recall ~0.97), and the
-    # object's own pixels just past it should not be pushed transparent. 0.1 with margin 2
-    # takes 55-90% of the held-out haze away on four product-path captures at -0.03..-0.21 dB
-    # (photo, true mask) but costs the tabletop 0.26 dB with true masks: an option
-    # (BENCHMARKS, Training, sessions 57-58)
+    # object's own pixels just past it should not be pushed transparent. Without it nothing
+    # stops Gaussians from spilling opacity where the loss sees no pixel: on the real bonsai
+    # photos half of each held-out render's opacity lay outside the mask (0.48 -> 0.02 with
+    # it); on four simulator captures it takes 55-90% of the haze away. Cost: -0.04 dB on
+    # the tabletop with true masks at equal steps, -0.03..-0.21 dB in the true mask on the
+    # product path (outline pixels), more in computed masks whose false positives the haze
+    # had been painting (BENCHMARKS, Training, sessions 57-59). 0 = off.
     noise_lr: float = 5e5  # MCMC SGLD noise scale (times the position lr)
     refine_every: int = 100  # relocate / add Gaussians every this many steps
     refine_start: int = 100  # first refinement step
