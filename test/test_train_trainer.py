@@ -1,6 +1,7 @@
 """End-to-end object-only training on a tiny simulated capture, edge cases, CLI and export."""
 
 import json
+import re
 from argparse import Namespace
 
 import numpy as np
@@ -181,7 +182,11 @@ def test_cli_train_and_export(sim, tmp_path):
     assert rep["lpips"].startswith("unavailable")
     assert sorted(p.stem for p in (out / "heldout").iterdir()) == sorted(
         [sim.views[0].key, sim.views[8].key])
-    assert (out / "report.html").read_text().count("<img") == 2
+    page = (out / "report.html").read_text()
+    assert page.count("<img") == 2
+    page = re.sub(r"data:image/png;base64,[A-Za-z0-9+/=]*", "", page)
+    assert "None" not in page and "heldout_psnr_gt_mask: " in page
+    assert "lpips: unavailable" in page
     names, count, _, _ = read_ply_header(out / "splats.ply")
     assert count == rep["n_gaussians"] and len(names) == 62
     from ooi_seg_ros.bag import BagReader
@@ -376,3 +381,15 @@ def test_background_penalty_spares_a_margin_past_the_mask():
     rows, cols = mask_crop(mask, 5)
     assert tg.far is not None and torch.equal(tg.far, far[rows, cols])
     assert _target(cam, image, mask, crop=True).far is None
+
+
+def test_report_summary_says_what_a_missing_figure_means():
+    lines = train_cli._summary_lines({"heldout_psnr": 21.1349, "heldout_ssim": 0.75043,
+                                      "heldout_psnr_gt_mask": None, "heldout_spill": 0.0188,
+                                      "n_gaussians": 10000}, "unavailable (no local weights file)")
+    assert lines[:4] == ["heldout_psnr: 21.13 dB", "heldout_ssim: 0.750",
+                         "heldout_psnr_gt_mask: n/a -- no ground-truth masks in the capture "
+                         "(scored in the computed masks only)",
+                         "heldout_spill: 1.9% of the render's opacity outside the mask"]
+    assert lines[4] == "n_gaussians: 10000" and lines[-1].startswith("lpips: unavailable")
+    assert train_cli._summary_lines({}, 0.1234) == ["lpips: 0.123"]

@@ -219,6 +219,28 @@ def _lpips(result: TrainResult, weights: Optional[str]):
     return float(np.mean(vals)) if vals else None
 
 
+def _summary_lines(metrics: dict, lpips) -> list[str]:
+    """The report page's summary, readable: units, sensible digits, and what a missing
+    figure means (no ground-truth masks, no LPIPS weights) instead of ``None``."""
+    lines = []
+    for k, v in metrics.items():
+        if v is None:
+            why = ("no ground-truth masks in the capture (scored in the computed masks only)"
+                   if k.endswith("_gt_mask") else "not measured")
+            lines.append(f"{k}: n/a -- {why}")
+        elif isinstance(v, float) and "psnr" in k:
+            lines.append(f"{k}: {v:.2f} dB")
+        elif isinstance(v, float) and "spill" in k:
+            lines.append(f"{k}: {100 * v:.1f}% of the render's opacity outside the mask")
+        elif isinstance(v, float):
+            lines.append(f"{k}: {v:.3f}" if "ssim" in k else f"{k}: {v:.1f}")
+        else:
+            lines.append(f"{k}: {v}")
+    lines.append(f"lpips: {lpips:.3f}" if isinstance(lpips, float)
+                 else f"lpips: {lpips}; give --lpips-weights FILE")
+    return lines
+
+
 def write_outputs(result: TrainResult, masks: Optional[dict], out: Path,
                   extra: Optional[dict] = None, lpips_weights: Optional[str] = None) -> dict:
     """splats.ply, training.mcap, heldout/*.png, report.json/html, config.yaml; the report."""
@@ -249,8 +271,8 @@ def write_outputs(result: TrainResult, masks: Optional[dict], out: Path,
         + "</td>"
         f"<td><img src='data:image/png;base64,{_png_b64(np.concatenate([h.gt, h.render], 1))}'>"
         "</td></tr>" for h in result.heldout)
-    summary = "".join(f"<li>{html.escape(str(k))}: {html.escape(str(v))}</li>"
-                      for k, v in result.metrics().items())
+    summary = "".join(f"<li>{html.escape(line)}</li>"
+                      for line in _summary_lines(result.metrics(), rep["lpips"]))
     (out / "report.html").write_text(
         "<!doctype html><html><head><meta charset='utf-8'><title>ooi-seg train</title></head>"
         f"<body><h1>Object-only splat training</h1><ul>{summary}</ul>"
