@@ -1245,6 +1245,69 @@ def test_hull_cut_grown_drops_a_leak_only_this_view_holds():
     assert out[k0][leak].all() and p["cut_px"] == 0
 
 
+def test_hull_free_carves_space_the_cameras_saw_through():
+    """``hull_free``: every view's GrabCut kept a blob of uniform wall above the object (so
+    the hull of all views' masks holds it and ``hull_cut_grown`` alone keeps it), but the
+    views observed background features through it: that space is carved from the hull and
+    the blob leaves every mask; the object's pixels stay. ``_obs_depths`` reads the features'
+    depths from an SfM cloud's observations."""
+    from ooi_seg_ros.core.types import SfmCloud
+    from ooi_seg_ros.seg.masks import point_radii
+    from ooi_seg_ros.seg.refine import RefineConfig, _obs_depths, hull_additions
+    base = _ring_views(8)
+    xyz = _sphere(1500)
+    # the wall seen past the object, inside the hull grid (the OOI box padded by 15%)
+    ghost = _sphere(400, r=0.12, c=(0.45, 0.45, 0.95), seed=1)
+    obj = point_masks(xyz, point_radii(xyz, 4, 1.0), base, MaskConfig(closing_kernel=3))
+    both = np.vstack([xyz, ghost])
+    grown = point_masks(both, point_radii(both, 4, 1.0), base, MaskConfig(closing_kernel=3))
+    # the room: far points, observed by a view where they are in frame and not behind the
+    # object (the blob is not solid: the cameras saw through it)
+    room = _sphere(60_000, r=8.0, c=(0, 0, 0.5), seed=2)
+    ptr, ov, oxy = [0], [], []
+    per_point = [[] for _ in range(len(room))]
+    for j, v in enumerate(base):
+        uv, z = project_distorted(room, v.camera, v.pose)
+        u, w = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+        ok = (z > 0) & (u >= 0) & (u < 64) & (w >= 0) & (w < 48)
+        ok[ok] &= ~obj[v.key][w[ok], u[ok]]
+        for i in np.nonzero(ok)[0]:
+            per_point[i].append((j, uv[i]))
+    for obs in per_point:
+        for j, xy in obs:
+            ov.append(j)
+            oxy.append(xy)
+        ptr.append(len(ov))
+    cloud = SfmCloud(room, np.zeros((len(room), 3), np.uint8), np.zeros(len(room)),
+                     np.array(ptr, np.int64), np.array(ov, np.int32),
+                     np.array(oxy, np.float32), list(base))
+    free_obs = _obs_depths([cloud], base)
+    assert sum(len(f[2]) for f in free_obs) == len(ov) > 1000
+    views = []
+    for v in base:
+        img = np.zeros((48, 64, 3), np.uint8)
+        img[...] = (40, 160, 40)
+        img[grown[v.key]] = (200, 30, 30)  # the wall has the object's colour
+        views.append(View(v.key, v.stamp_ns, v.camera, v.pose, img))
+    models = {v.key: (_gmm_model([40, 160, 40], 100.0), _gmm_model([30, 30, 200], 100.0),
+                      np.zeros_like(obj[v.key])) for v in views}
+    masks = {k: m.copy() for k, m in grown.items()}
+    blob = {k: grown[k] & ~obj[k] for k in grown}
+    assert sum(b.sum() for b in blob.values()) > 100
+    cfg = RefineConfig(hull_add=True, hull_cut_grown=True)
+    kept, p0 = hull_additions(masks, views, xyz, models, cfg, None, obj)
+    n_blob = sum(b.sum() for b in blob.values())
+    assert sum((kept[k] & blob[k]).sum() for k in blob) >= 0.9 * n_blob  # the hull holds it
+    cfg = RefineConfig(hull_add=True, hull_cut_grown=True, hull_free=2)
+    out, p = hull_additions(masks, views, xyz, models, cfg, None, obj, free_obs=free_obs)
+    assert p["free_voxels"] > 0
+    assert sum((out[k] & blob[k]).sum() for k in blob) <= 0.05 * n_blob
+    assert all(out[k][obj[k]].all() for k in obj)  # the object's pixels stay
+    # without the features (no SfM observations handed over) nothing is carved
+    same, _ = hull_additions(masks, views, xyz, models, cfg, None, obj)
+    assert all(np.array_equal(same[k], kept[k]) for k in kept)
+
+
 def test_border_leak_hull_drops_a_leak_to_the_edge_and_keeps_a_part_that_leaves_the_frame():
     """``border_leak_hull``: growth past the silhouette out to an image side the silhouette
     does not reach leaves the mask where its rays miss the hull of all views' masks (a band of

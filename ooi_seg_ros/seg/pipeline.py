@@ -25,6 +25,9 @@ GrabCut grew past the splatted silhouette leaves a view's mask where few views' 
 (``hull_cut_grown``) and, where it runs out to an image side the silhouette does not
 reach, where most views' masks miss it (``border_leak_hull``: nothing beyond the image's
 edge stopped the cut there -- the wall above a crown that nears the top of the photo).
+Both hulls leave out the voxels that two views saw past (an SfM feature observed more than 3
+voxels beyond on the ray: ``hull_free``), so a uniform wall seen through a gap under the
+crown, which every view's GrabCut kept and no silhouette carves, leaves the masks too.
 After the additions, a pixel the neighbour views place past the object leaves the mask
 (``behind_cut``: more of them repeat its colour at some depth beyond the looser hull than at
 any depth inside it -- a chair or shelf seen between the leaves, kept by GrabCut for its
@@ -115,7 +118,7 @@ def preset(method: str) -> dict:
                 "refine": {"enabled": True, "fg_seeds": "projections", "edge_window": 7,
                            "max_side": 400, "band_gaps": 3.0, "seed_cover": 0.5625,
                            "hull_add": True,
-                           "upsample": 2, "hull_cut_grown": True,
+                           "upsample": 2, "hull_cut_grown": True, "hull_free": 2,
                            "border_leak_hull": True, "hull_thin_agree": 0.3,
                            "hull_thin_distinct": 4, "behind_cut": "mask",
                            "behind_open": True, "outline_vote": True, "grown_open": 1,

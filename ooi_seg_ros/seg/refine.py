@@ -177,6 +177,15 @@ class RefineConfig:
     # lies this deep inside the mask (a thin part, a part the mask missed) the per-pixel test
     # decides alone: the cut's smoothness removes thin parts, which the additions bring back
     hull_max_voxels: int = 1_000_000  # hull_add: coarser voxels when the grid would be larger
+    hull_free: int = 0  # hull_add: > 0: a voxel leaves every hull when at least this many views
+    # observed an SfM feature (object or background) beyond it on the ray through it -- the
+    # camera saw past it, so it is free space (space carving by the features: the gap under a
+    # crown or between a trunk and a pot, which no silhouette carves when every view's GrabCut
+    # kept the uniform wall seen through it); 0: off
+    hull_free_margin: float = 3.0  # hull_free: the feature lies more than this many voxel edges
+    # beyond the voxel's depth in that view (a voxel just in front of a surface stays)
+    hull_free_dilate: int = 1  # hull_free: each feature's depth holds over a (2r+1)^2 window
+    # (features are sparse: ~2% of the pixels); 0: the feature's own pixel only
     # (its cost: one projection of the grid per view; 1M and 4M gave the same masks +-0.001)
     plane_check: PlaneCheckConfig = field(default_factory=PlaneCheckConfig)  # pixels whose
     # colour the support plane explains (photo-consistent with nearby views) are background
@@ -202,6 +211,49 @@ def _obs_by_view(cloud: SfmCloud, views: list[View]) -> list[np.ndarray]:
         if j is not None:
             out[j] = xy[bounds[i]:bounds[i + 1]]
     return out
+
+
+def _obs_depths(clouds: list[SfmCloud], views: list[View]) -> list[tuple]:
+    """(pixel columns, rows, depths) of every observed feature of ``clouds`` in each of
+    ``views`` (matched by key, as ``_obs_by_view``): where that view saw a surface."""
+    parts: list[list] = [[] for _ in views]
+    where = {v.key: j for j, v in enumerate(views)}
+    for cloud in clouds:
+        if len(cloud.obs_view) == 0:
+            continue
+        src = cloud.views if cloud.views else views
+        pid = np.repeat(np.arange(len(cloud.xyz)), np.diff(cloud.obs_ptr))
+        for i, sv in enumerate(src):
+            j = where.get(sv.key)
+            sel = np.nonzero(cloud.obs_view == i)[0]
+            if j is None or not len(sel):
+                continue
+            v = views[j]
+            _, z = project_distorted(cloud.xyz[pid[sel]], v.camera, v.pose)
+            xy = cloud.obs_xy[sel]
+            u, w = np.rint(xy[:, 0]), np.rint(xy[:, 1])
+            ok = ((z > 1e-9) & np.isfinite(z) & (u >= 0) & (u < v.camera.width) & (w >= 0)
+                  & (w < v.camera.height))
+            parts[j].append((u[ok].astype(int), w[ok].astype(int), z[ok].astype(np.float32)))
+    out = []
+    for p in parts:
+        if not p:
+            out.append((np.zeros(0, int), np.zeros(0, int), np.zeros(0, np.float32)))
+        else:
+            out.append(tuple(np.concatenate(a) for a in zip(*p)))
+    return out
+
+
+def _seen_depth(obs: tuple, h: int, w: int, dilate: int) -> np.ndarray:
+    """[h, w] the farthest observed feature's depth at each pixel (0: none), over a
+    (2 ``dilate`` + 1)^2 window."""
+    d = np.zeros((h, w), np.float32)
+    u, v, z = obs
+    if len(z):
+        np.maximum.at(d, (v, u), z)
+        if dilate > 0:
+            d = ndimage.grey_dilation(d, size=(2 * dilate + 1, 2 * dilate + 1))
+    return d
 
 
 def _in_frame(proj: tuple[np.ndarray, np.ndarray], v: View) -> np.ndarray:
@@ -882,7 +934,8 @@ def _loose_hull(masks: dict, views: list[View], models: dict, silhouettes: dict,
 
 def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndarray,
                    models: dict, cfg: RefineConfig, photo: Optional[PlaneConsistency] = None,
-                   silhouettes: Optional[dict] = None) -> tuple[dict, dict]:
+                   silhouettes: Optional[dict] = None,
+                   free_obs: Optional[list] = None) -> tuple[dict, dict]:
     """Masks grown by the pixels the other views' masks and this view's colours agree on.
 
     A voxel grid covers the OOI points' box (padded by 15% of its longest side, as the hull
@@ -899,7 +952,10 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
     Views without colour models (GrabCut not run) are left as they are. ``hull_cut`` also
     removes from those views' masks the pixels whose rays miss the hull; ``hull_cut_grown``
     (with the splatted ``silhouettes``) only those outside the silhouette whose rays miss
-    the hull of ``hull_cut_agree`` (a looser hull: what few views hold).
+    the hull of ``hull_cut_agree`` (a looser hull: what few views hold). With ``hull_free``
+    and ``free_obs`` (``_obs_depths`` of ``views``), the voxels that at least ``hull_free``
+    views saw past (an observed feature more than ``hull_free_margin`` voxels beyond) leave
+    every hull.
     """
     import cv2  # noqa: F401 -- the refinement's dependency; models come from cv2.grabCut
     keys = [v.key for v in views if v.key in masks]
@@ -931,7 +987,9 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
     # offsets from its centre, ~2-3x faster than float64 and the same pixel but where a
     # centre falls within ~1e-4 px of a pixel border
     cells = PointSet(grid, np.ones(len(grid), bool))
-    for v in views:
+    carve = int(cfg.hull_free) > 0 and free_obs is not None
+    free = np.zeros(len(grid), np.int32) if carve else None
+    for j, v in enumerate(views):
         if v.key not in masks:
             continue
         c = v.camera
@@ -939,7 +997,16 @@ def hull_additions(masks: dict[str, np.ndarray], views: list[View], xyz: np.ndar
         ui, vi = np.rint(u), np.rint(w)
         ok = (z > 1e-9) & (ui >= 0) & (ui < c.width) & (vi >= 0) & (vi < c.height)
         seen += ok
-        inside[ok] += masks[v.key][vi[ok].astype(int), ui[ok].astype(int)]
+        iu, iv = ui[ok].astype(int), vi[ok].astype(int)
+        inside[ok] += masks[v.key][iv, iu]
+        if carve:
+            d = _seen_depth(free_obs[j], c.height, c.width, int(cfg.hull_free_dilate))
+            free[ok] += d[iv, iu] > z[ok] + float(cfg.hull_free_margin) * vs
+    solid = free < int(cfg.hull_free) if carve else np.ones(len(grid), bool)
+    if carve:
+        params["free_voxels"] = int(((seen > 0) & (inside > float(cfg.hull_cut_agree) * seen)
+                                     & ~solid).sum())
+    seen = np.where(solid, seen, 0)  # carved voxels are in no hull below
     keep = (seen > 0) & (inside > float(cfg.hull_agree) * seen)
     params.update({"voxel_size": vs, "voxels": int(keep.sum()), "grid": int(len(grid))})
     if not keep.any():
@@ -1265,8 +1332,10 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                          f"or consistent")
     if cfg.hull_add:
         both = {**(context_masks or {}), **out}
+        free_obs = (_obs_depths([ooi, background], views) if int(cfg.hull_free) > 0
+                    else None)
         both, params["hull_add"] = hull_additions(both, views, ooi.xyz, models or {}, cfg,
-                                                  floor, silhouettes=masks)
+                                                  floor, silhouettes=masks, free_obs=free_obs)
         out = {k: both[k] for k in out}
         params["hull_add"]["context_views"] = len(context_masks or {})
     if cfg.edge_window > 1:
