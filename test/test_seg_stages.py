@@ -1683,6 +1683,34 @@ def test_pixel_floor_leaves_the_mask_only_where_colour_says_ground():
     assert not kept[15:25, 15:25][~sure[15:25, 15:25]].any()
 
 
+def test_pixel_reach_lets_the_colour_decide_the_ground_between_speckled_votes():
+    """plane_check.pixel_reach: ground seen through a wheel votes floor pixel by pixel only in
+    specks (the rest fails the noise test). Without reach only the specks leave; with it, the
+    mask pixels beside a vote are put to the same chromaticity vote, so the see-through grass
+    leaves whole and the frame, of the object's hue, stays."""
+    from ooi_seg_ros.seg.refine import _drop_pixel_floor
+    rng = np.random.default_rng(2)
+    img = np.zeros((40, 40, 3), np.float32)
+    img[:] = (60, 140, 50)  # grass
+    img[8:32, 8:32] = (180, 30, 30)  # a red frame ...
+    img[14:26, 14:26] = (60, 140, 50)  # ... with grass seen through it
+    img = np.clip(img + rng.normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    res = np.zeros((40, 40), bool)
+    res[8:32, 8:32] = True
+    ground = ~res
+    pixel = np.zeros((40, 40), bool)
+    pixel[14:26:3, 14:26:3] = True  # specks of votes over the grass
+    sure = np.zeros((40, 40), bool)
+    hole = np.zeros((40, 40), bool)
+    hole[14:26, 14:26] = True
+    plain = _drop_pixel_floor(res, pixel, ground, img, 0, sure)
+    assert (res & ~plain).sum() == pixel.sum()  # the specks alone
+    reach = _drop_pixel_floor(res, pixel, ground, img, 0, sure, reach=2)
+    assert not reach[hole].any()  # the grass left whole
+    assert reach[res & ~hole].all()  # the frame stayed
+    assert not (reach & ~res).any()  # only removes
+
+
 def _cylinder(n: int, r: float, z0: float, z1: float, c=(0.0, 0.0), seed: int = 0
               ) -> np.ndarray:
     rng = np.random.default_rng(seed)

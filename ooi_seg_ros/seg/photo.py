@@ -116,6 +116,8 @@ class PlaneCheckConfig:
     # On in ``ours`` since session 23 (with ``pixel_strict``): IoU up on every benchmark
     # capture; it had been off since session 11 because it took the aircraft's recall under
     # 0.97, which the object guard has since made up for (BENCHMARKS.md, session 23)
+    pixel_reach: int = 0  # pixel_votes: the chromaticity vote also decides the mask pixels
+    # within this many px of a floor-voting pixel (ground between spokes votes in specks)
     pixel_strict: bool = True  # pixel_votes: a pixel votes floor only where the object's
     # depth also fails to explain it (its colour there off by more than the pair's noise),
     # not merely explains it worse: on dark, plain parts of real photos (the bonsai's pot)

@@ -539,7 +539,8 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
         if floor is not None and floor.cfg.pixel_votes:
             res = _drop_pixel_floor(res, floor.pixel_floor.get((j, tuple(box))), fl_full,
                                     v.get_image()[box[0]:box[1], box[2]:box[3]], j,
-                                    fg_seed & ~bg_seed, floor.cfg.min_region)
+                                    fg_seed & ~bg_seed, floor.cfg.min_region,
+                                    floor.cfg.pixel_reach)
         a0, a1 = ref_area, res.sum()
         if abs(a1 - a0) > cfg.max_area_change * a0:
             rejected += 1
@@ -588,7 +589,7 @@ def _border_grown(res: np.ndarray, crop: np.ndarray, m: np.ndarray, box: tuple
 
 def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.ndarray,
                       img: np.ndarray, seed: int, sure: np.ndarray,
-                      min_region: int = 1) -> np.ndarray:
+                      min_region: int = 1, reach: int = 0) -> np.ndarray:
     """``res`` without the pixels the per-pixel plane votes call floor (``pixel_votes``)
     whose chromaticity also votes ground: k-NN against the rest of ``res`` and the floor the
     plane check found outside it (the crop's background when that is under 50 px). The
@@ -603,7 +604,10 @@ def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.n
                            interpolation=cv2.INTER_NEAREST).astype(bool)
         sure = cv2.resize(sure.astype(np.uint8), (res.shape[1], res.shape[0]),
                           interpolation=cv2.INTER_NEAREST).astype(bool)
-    cand = pixel & res & ~sure
+    near = pixel
+    if reach > 0:
+        near = ndimage.binary_dilation(pixel, np.ones((2 * reach + 1,) * 2, bool))
+    cand = near & res & ~sure
     if not cand.any():
         return res
     bg = (ground | pixel) & ~res
