@@ -1709,6 +1709,13 @@ def test_pixel_reach_lets_the_colour_decide_the_ground_between_speckled_votes():
     assert not reach[hole].any()  # the grass left whole
     assert reach[res & ~hole].all()  # the frame stayed
     assert not (reach & ~res).any()  # only removes
+    # pixel_reach_density: a lone vote does not spread (too few votes around it)
+    lone = np.zeros((40, 40), bool)
+    lone[20, 20] = True
+    gated = _drop_pixel_floor(res, lone, ground, img, 0, sure, reach=2, density=0.2)
+    assert (res & ~gated).sum() == 1
+    assert not _drop_pixel_floor(res, pixel, ground, img, 0, sure, reach=2,
+                                 density=0.05)[16:24, 16:24].any()  # dense specks spread
 
 
 def _cylinder(n: int, r: float, z0: float, z1: float, c=(0.0, 0.0), seed: int = 0

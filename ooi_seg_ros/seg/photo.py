@@ -118,6 +118,8 @@ class PlaneCheckConfig:
     # 0.97, which the object guard has since made up for (BENCHMARKS.md, session 23)
     pixel_reach: int = 0  # pixel_votes: the chromaticity vote also decides the mask pixels
     # within this many px of a floor-voting pixel (ground between spokes votes in specks)
+    pixel_reach_density: float = 0.0  # pixel_reach: only where at least this share of the
+    # (2 * reach + 3)-px window around the pixel voted (dense specks: ground, not a lone vote)
     pixel_strict: bool = True  # pixel_votes: a pixel votes floor only where the object's
     # depth also fails to explain it (its colour there off by more than the pair's noise),
     # not merely explains it worse: on dark, plain parts of real photos (the bonsai's pot)

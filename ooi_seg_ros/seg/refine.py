@@ -540,7 +540,7 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
             res = _drop_pixel_floor(res, floor.pixel_floor.get((j, tuple(box))), fl_full,
                                     v.get_image()[box[0]:box[1], box[2]:box[3]], j,
                                     fg_seed & ~bg_seed, floor.cfg.min_region,
-                                    floor.cfg.pixel_reach)
+                                    floor.cfg.pixel_reach, floor.cfg.pixel_reach_density)
         a0, a1 = ref_area, res.sum()
         if abs(a1 - a0) > cfg.max_area_change * a0:
             rejected += 1
@@ -589,7 +589,8 @@ def _border_grown(res: np.ndarray, crop: np.ndarray, m: np.ndarray, box: tuple
 
 def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.ndarray,
                       img: np.ndarray, seed: int, sure: np.ndarray,
-                      min_region: int = 1, reach: int = 0) -> np.ndarray:
+                      min_region: int = 1, reach: int = 0, density: float = 0.0
+                      ) -> np.ndarray:
     """``res`` without the pixels the per-pixel plane votes call floor (``pixel_votes``)
     whose chromaticity also votes ground: k-NN against the rest of ``res`` and the floor the
     plane check found outside it (the crop's background when that is under 50 px). The
@@ -607,6 +608,10 @@ def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.n
     near = pixel
     if reach > 0:
         near = ndimage.binary_dilation(pixel, np.ones((2 * reach + 1,) * 2, bool))
+        if density > 0:  # only where the votes are dense (lawn), not lone specks
+            side = 2 * (reach + 1) + 1
+            dense = ndimage.uniform_filter(pixel.astype(np.float32), side, mode="constant")
+            near = pixel | (near & (dense >= density))
     cand = near & res & ~sure
     if not cand.any():
         return res
