@@ -1718,6 +1718,38 @@ def test_pixel_reach_lets_the_colour_decide_the_ground_between_speckled_votes():
                                  density=0.05)[16:24, 16:24].any()  # dense specks spread
 
 
+def test_pixel_reach_ground_keeps_a_pixel_whose_colour_the_ground_only_partly_shares():
+    """plane_check.pixel_reach_ground: a pixel beside the votes that did not vote itself
+    leaves only with a clear ground majority among its chromaticity neighbours. An olive part
+    of the object, beside grass seen through it, with olive leaves on the lawn too: at the
+    plain majority most of it leaves; with a 0.8 margin most of it stays, and the grass,
+    whose neighbours are all ground, leaves under both."""
+    from ooi_seg_ros.seg.refine import _drop_pixel_floor
+    rng = np.random.default_rng(3)
+    img = np.zeros((40, 40, 3), np.float32)
+    img[:] = (60, 140, 50)  # grass
+    img[0:7] = (110, 120, 40)  # olive leaves on the lawn
+    img[8:32, 8:32] = (180, 30, 30)  # a red frame
+    img[26:32, 8:32] = (110, 120, 40)  # an olive part of the object, away from the votes
+    img[14:26, 14:20] = (60, 140, 50)  # grass seen through the frame
+    img[14:26, 20:26] = (110, 120, 40)  # olive, beside the votes
+    img = np.clip(img + rng.normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    res = np.zeros((40, 40), bool)
+    res[8:32, 8:32] = True
+    pixel = np.zeros((40, 40), bool)
+    pixel[14:26:3, 14:26:3] = True
+    sure = np.zeros((40, 40), bool)
+    grass = np.zeros((40, 40), bool)
+    grass[14:26, 14:20] = True
+    olive = np.zeros((40, 40), bool)
+    olive[14:26, 20:26] = True
+    plain = _drop_pixel_floor(res, pixel, ~res, img, 0, sure, reach=2)
+    margin = _drop_pixel_floor(res, pixel, ~res, img, 0, sure, reach=2, reach_ground=0.8)
+    assert not plain[grass].any() and not margin[grass].any()
+    assert plain[olive & ~pixel].mean() < 0.4 < 0.6 < margin[olive & ~pixel].mean()
+    assert margin[res & ~grass & ~olive].all()
+
+
 def _cylinder(n: int, r: float, z0: float, z1: float, c=(0.0, 0.0), seed: int = 0
               ) -> np.ndarray:
     rng = np.random.default_rng(seed)

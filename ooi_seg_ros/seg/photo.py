@@ -120,6 +120,9 @@ class PlaneCheckConfig:
     # within this many px of a floor-voting pixel (ground between spokes votes in specks)
     pixel_reach_density: float = 0.0  # pixel_reach: only where at least this share of the
     # (2 * reach + 3)-px window around the pixel voted (dense specks: ground, not a lone vote)
+    pixel_reach_ground: float = 0.5  # pixel_reach: a pixel that did not vote itself leaves
+    # only when more than this share of its chromaticity neighbours are ground (a margin:
+    # a pixel whose colour lies between the object's and the ground's stays)
     pixel_strict: bool = True  # pixel_votes: a pixel votes floor only where the object's
     # depth also fails to explain it (its colour there off by more than the pair's noise),
     # not merely explains it worse: on dark, plain parts of real photos (the bonsai's pot)

@@ -540,7 +540,8 @@ def _grabcut_pass(masks: dict[str, np.ndarray], views: list[View], fg_xy: list[n
             res = _drop_pixel_floor(res, floor.pixel_floor.get((j, tuple(box))), fl_full,
                                     v.get_image()[box[0]:box[1], box[2]:box[3]], j,
                                     fg_seed & ~bg_seed, floor.cfg.min_region,
-                                    floor.cfg.pixel_reach, floor.cfg.pixel_reach_density)
+                                    floor.cfg.pixel_reach, floor.cfg.pixel_reach_density,
+                                    floor.cfg.pixel_reach_ground)
         a0, a1 = ref_area, res.sum()
         if abs(a1 - a0) > cfg.max_area_change * a0:
             rejected += 1
@@ -589,14 +590,17 @@ def _border_grown(res: np.ndarray, crop: np.ndarray, m: np.ndarray, box: tuple
 
 def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.ndarray,
                       img: np.ndarray, seed: int, sure: np.ndarray,
-                      min_region: int = 1, reach: int = 0, density: float = 0.0
-                      ) -> np.ndarray:
+                      min_region: int = 1, reach: int = 0, density: float = 0.0,
+                      reach_ground: float = 0.5) -> np.ndarray:
     """``res`` without the pixels the per-pixel plane votes call floor (``pixel_votes``)
     whose chromaticity also votes ground: k-NN against the rest of ``res`` and the floor the
     plane check found outside it (the crop's background when that is under 50 px). The
     sure-object seeds (``sure``, where OOI points project) stay, and so do removals smaller
     than ``min_region`` px that do not touch the mask's outside: specks inside the object
-    (on the real bonsai they fell on the pot, the stand and the crown, session 15)."""
+    (on the real bonsai they fell on the pot, the stand and the crown, session 15).
+    ``reach`` / ``density``: the pixels near the votes are tested too; such a pixel (one that
+    did not vote itself) leaves only when more than ``reach_ground`` of its neighbours in
+    chromaticity are ground pixels."""
     if pixel is None or not pixel.any():
         return res
     if pixel.shape != res.shape:
@@ -617,7 +621,9 @@ def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.n
         return res
     bg = (ground | pixel) & ~res
     out = res.copy()
-    out[cand] = chroma_vote(img, res & ~cand, bg if bg.sum() >= 50 else ~res, cand, seed)
+    share = chroma_vote(img, res & ~cand, bg if bg.sum() >= 50 else ~res, cand, seed,
+                        share=True)
+    out[cand] = np.where(pixel[cand], share > 0.5, share >= 1.0 - reach_ground)
     gone = res & ~out
     if min_region > 1 and gone.any():
         lab, n = ndimage.label(gone, np.ones((3, 3), bool))
@@ -632,23 +638,25 @@ def _drop_pixel_floor(res: np.ndarray, pixel: Optional[np.ndarray], ground: np.n
 
 
 def chroma_vote(img: np.ndarray, obj: np.ndarray, bg: np.ndarray, test: np.ndarray,
-                seed: int, n: int = 3000, k: int = 7) -> np.ndarray:
+                seed: int, n: int = 3000, k: int = 7, share: bool = False) -> np.ndarray:
     """Bool [m] for the ``test`` pixels of ``img`` (row-major order): whether most of their
     ``k`` nearest neighbours in chromaticity ((r, g) / (r + g + b), blind to shading) among
     up to ``n`` sampled ``obj`` pixels and ``n`` sampled ``bg`` pixels are object pixels
-    (a k-NN vote; the samples are drawn with ``seed``). All False when a side is empty."""
+    (a k-NN vote; the samples are drawn with ``seed``). All False when a side is empty.
+    ``share``: float [m], the object share of the neighbours instead (0 when a side is empty)."""
     from scipy.spatial import cKDTree
     im = img.astype(np.float32)
     ch = im[..., :2] / np.maximum(im.sum(-1, keepdims=True), 1.0)
     rng = np.random.default_rng(seed)
     fo, fb = ch[obj], ch[bg]
     if len(fo) == 0 or len(fb) == 0:
-        return np.zeros(int(test.sum()), bool)
+        return np.zeros(int(test.sum()), float if share else bool)
     fo = fo[rng.choice(len(fo), min(n, len(fo)), replace=False)]
     fb = fb[rng.choice(len(fb), min(n, len(fb)), replace=False)]
     lab = np.r_[np.ones(len(fo)), np.zeros(len(fb))]
     _, idx = cKDTree(np.vstack([fo, fb])).query(ch[test], k=k)
-    return lab[idx].mean(axis=1) > 0.5
+    votes = lab[idx].mean(axis=1)
+    return votes if share else votes > 0.5
 
 
 def edge_matte(img: np.ndarray, mask: np.ndarray, window: int, alpha: float = 0.5
