@@ -128,7 +128,9 @@ def preset(method: str) -> dict:
                                            "behind_window": 3, "neighbours": 8,
                                            "max_deg": 35.0, "rank": 3,
                                            "keep_discs": True, "object_guard": True,
-                                           "pixel_votes": True}}}
+                                           "pixel_votes": True, "pixel_reach": 1,
+                                           "pixel_reach_density": 0.2,
+                                           "pixel_reach_ground": 0.8}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 
