@@ -102,6 +102,34 @@ def test_grow_scale_takes_the_noise_stage_s_near_points_back_after_the_choice(ai
     assert n["grown"] + n["grow_refused"] == near and len(e.ooi_cloud) == len(ooi) + n["grown"]
 
 
+def test_grow_local_lets_the_grown_points_add_pixels_only_near_their_own_discs(aircraft):
+    # an option (off in ours; BENCHMARKS, Session 63): the masks without the grown points
+    # (as if grow_scale were off) plus what the masks with them add within grow_local median
+    # disc radii of a grown point -- nothing they move elsewhere (hull steps, GrabCut seeds)
+    sim, cloud = aircraft
+    grow = {"grow_scale": 3.0}
+    a = segment(sim.capture, cloud, make_config("ours"))
+    b = segment(sim.capture, cloud, make_config("ours", {"noise": grow}))
+    assert b.params["noise"]["grown"] > 0
+    assert any((b.masks[k] & ~a.masks[k]).any() for k in a.masks)
+    c = segment(sim.capture, cloud, make_config("ours", {"noise": dict(grow, grow_local=2.0)}))
+    assert len(c.ooi_cloud) == len(b.ooi_cloud)  # the OOI cloud keeps the grown points
+    added = 0
+    for k in a.masks:
+        assert not (a.masks[k] & ~c.masks[k]).any()  # nothing leaves
+        assert not (c.masks[k] & ~(a.masks[k] | b.masks[k])).any()  # only b's pixels join
+        added += int((c.masks[k] & ~a.masks[k]).sum())
+    gl = c.params["noise"]["grow_local"]
+    assert gl["added_px"] == added
+    assert gl["radius"] == pytest.approx(2.0 * b.params["masks"]["median_radius"])
+    # a neighbourhood wider than every view: all that the grown masks add
+    d = segment(sim.capture, cloud, make_config("ours", {"noise": dict(grow, grow_local=1e4)}))
+    assert all(np.array_equal(d.masks[k], a.masks[k] | b.masks[k]) for k in a.masks)
+    assert added <= d.params["noise"]["grow_local"]["added_px"]
+    with pytest.raises(InputError, match="grow_local"):
+        make_config("ours", {"noise": dict(grow, grow_local=-1.0)})
+
+
 def test_ooi_colour_vote_takes_points_that_look_like_the_background_out_of_the_ooi(aircraft):
     # an option (off in ours; BENCHMARKS, Session 53): after the point stages, OOI points
     # whose pixels are nearer the rest of the cloud's colours in most views leave the OOI

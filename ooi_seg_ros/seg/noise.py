@@ -117,6 +117,13 @@ that were in another DBSCAN cluster were all off the object), and ``grow_sparse`
 grown points' discs and keeps them out of GrabCut's object seeds as density's sparse points:
 together they leave the toy car and the bicycle near the default but give the aircraft's
 gain back too. Lone points alone do not tell a thin part from a floater.
+``grow_local`` (an option, off) confines what the grown points may change in the masks to
+their own neighbourhood: the masks are made a second time without them (exactly as with
+``grow_scale`` off), and a pixel joins that result only where the masks with them hold it
+within ``grow_local`` median mask-disc radii of a grown point's projection; nothing leaves.
+Why: on the real bonsai three grown points moved 12k mask pixels (session 62), most of them
+far from any grown point, through the hull steps and GrabCut's colour models. It costs a
+second pass of the masks on captures where points grow.
 """
 
 from __future__ import annotations
@@ -148,6 +155,9 @@ class NoiseConfig:
     # rest of the cloud's (residual.colour_vote)
     grow_sparse: bool = False  # grow_scale: the grown points are flagged as density's sparse
     # points are (capped mask discs; no GrabCut object seeds unless density.sparse_seeds)
+    grow_local: float = 0.0  # grow_scale: > 0, the grown points change the masks only within
+    # this x the median mask disc radius of a grown point (a second pass of the masks without
+    # them; elsewhere their hull steps and GrabCut seeds move pixels they never touch)
     merge_reach_quantile: float = 0.98  # central: the main cluster's reach = this quantile
     # of its points' distances to the convergence point; other clusters within it are merged
     # (0: within the frame radius instead)

@@ -51,7 +51,7 @@ from ..core.geometry import cameras_convergence_point
 from ..core.types import Capture, InputError, SfmCloud, TriMesh
 from .density import DensityConfig, density_filter, spacing
 from .floor import FloorConfig, floor_filter
-from .masks import MaskConfig, hull_carve, render_masks
+from .masks import MaskConfig, hull_carve, point_masks, point_radii, render_masks
 from .mesh import MeshConfig, build_mesh
 from .metrics import scene_metrics
 from .noise import NoiseConfig, grow_selection, noise_filter
@@ -163,6 +163,9 @@ def make_config(method: Optional[str] = None, overrides: Optional[dict] = None
     if not 0.0 <= float(d.sparse_share) < 1.0:
         raise InputError(f"bad segmentation config: density.sparse_share={d.sparse_share}; "
                          f"it is a share of the points in [0, 1) (0 = off)")
+    if not float(cfg.noise.grow_local) >= 0.0:
+        raise InputError(f"bad segmentation config: noise.grow_local={cfg.noise.grow_local}; "
+                         f"it is a number of median mask disc radii >= 0 (0 = off)")
     for sub in (cfg.density, cfg.floor, cfg.refine):
         sub.seed = cfg.seed
     return cfg
@@ -322,6 +325,7 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
     full = cloud
     sel = np.arange(len(cloud))
     small_disc = np.zeros(len(full), bool)  # points whose mask discs are capped (density)
+    grown_pts = np.zeros(0, np.int64)  # points noise.grow_scale added
 
     def run(name: str, fn) -> None:
         nonlocal cloud, sel
@@ -412,6 +416,7 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
             params.setdefault("noise", {})["grow_refused"] = int((~ok).sum())
             added = added[ok]
         params.setdefault("noise", {})["grown"] = int(len(added))
+        grown_pts = np.sort(added)
         if len(added):
             if cfg.noise.grow_sparse:
                 small_disc[added] = True
@@ -478,52 +483,87 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
                         f"points on the object (report.html shows the cloud after each stage)")
     if on_cloud is not None:
         on_cloud(cloud)
-    t0 = time.perf_counter()
-    try:
-        mesh, params["mesh"] = build_mesh(cloud, cfg.mesh)
-    except RuntimeError as exc:
-        mesh = TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32))
-        warnings.append(f"mesh: reconstruction failed ({exc}); mesh left empty")
-    timings["mesh"] = time.perf_counter() - t0
-    if cfg.masks.mode == "mesh" and mesh.is_empty:
-        warnings.append("mesh is empty; masks fall back to point splats")
-        cfg.masks.mode = "points"
-    t0 = time.perf_counter()
-    masks, params["masks"] = render_masks(mask_views, cfg.masks, mesh, cloud.xyz,
-                                          small_disc[sel] if small_disc.any() else None)
-    timings["masks"] = time.perf_counter() - t0
-    if cfg.refine.enabled:
+    def masks_of(sel_: np.ndarray, cloud_: SfmCloud, params_: dict, timings_: dict,
+                 warnings_: list) -> tuple[TriMesh, dict]:
+        """Mesh, masks, refinement and carving of the OOI points ``sel_`` (``cloud_``)."""
         t0 = time.perf_counter()
-        removed = ~neither
-        removed[sel] = False
-        fp = params.get("floor", {})
-        plane = None
-        if fp.get("support_plane") is not None and "band_inliers" in fp:
-            # points in the layer between the inliers' band and the floor's measured thickness
-            # may be the object's foot (a pot's base, a tyre): not background seeds
-            plane = np.asarray(fp["support_plane"])
-            h = full.xyz @ plane[:3] + plane[3]
-            removed &= ~((h > fp["band_inliers"]) & (h <= fp["band"]))
-        pcfg = cfg.refine.plane_check
-        if plane is not None and pcfg.enabled and pcfg.extra_planes > 0:
-            extra = background_planes(full.xyz[removed], cloud.xyz, cam_centers,
-                                      float(fp.get("threshold", 0.0)), pcfg.extra_planes,
-                                      cfg.seed)
-            params["background_planes"] = extra.tolist()
-            plane = np.vstack([plane[None], extra])
         try:
-            seeds = (~small_disc[sel] if small_disc.any() and not cfg.density.sparse_seeds
-                     else None)
-            masks, params["refine"] = refine_masks(masks, views, cloud, full.subset(removed),
-                                                   cfg.refine, plane, target, context, seeds)
-        except ImportError:
-            warnings.append("refine: opencv-python-headless is not installed; masks are the "
-                            "unrefined point silhouettes")
-        timings["refine"] = time.perf_counter() - t0
-    if cfg.masks.hull_carve:
+            mesh, params_["mesh"] = build_mesh(cloud_, cfg.mesh)
+        except RuntimeError as exc:
+            mesh = TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32))
+            warnings_.append(f"mesh: reconstruction failed ({exc}); mesh left empty")
+        timings_["mesh"] = time.perf_counter() - t0
+        if cfg.masks.mode == "mesh" and mesh.is_empty:
+            warnings_.append("mesh is empty; masks fall back to point splats")
+            cfg.masks.mode = "points"
         t0 = time.perf_counter()
-        masks, params["hull_carve"] = hull_carve(masks, views, cloud.xyz, cfg.masks)
-        timings["hull_carve"] = time.perf_counter() - t0
+        masks, params_["masks"] = render_masks(mask_views, cfg.masks, mesh, cloud_.xyz,
+                                               small_disc[sel_] if small_disc.any() else None)
+        timings_["masks"] = time.perf_counter() - t0
+        if cfg.refine.enabled:
+            t0 = time.perf_counter()
+            removed = ~neither
+            removed[sel_] = False
+            fp = params.get("floor", {})
+            plane = None
+            if fp.get("support_plane") is not None and "band_inliers" in fp:
+                # points in the layer between the inliers' band and the floor's measured
+                # thickness may be the object's foot (a pot's base, a tyre): not background
+                plane = np.asarray(fp["support_plane"])
+                h = full.xyz @ plane[:3] + plane[3]
+                removed &= ~((h > fp["band_inliers"]) & (h <= fp["band"]))
+            pcfg = cfg.refine.plane_check
+            if plane is not None and pcfg.enabled and pcfg.extra_planes > 0:
+                extra = background_planes(full.xyz[removed], cloud_.xyz, cam_centers,
+                                          float(fp.get("threshold", 0.0)), pcfg.extra_planes,
+                                          cfg.seed)
+                params_["background_planes"] = extra.tolist()
+                plane = np.vstack([plane[None], extra])
+            try:
+                seeds = (~small_disc[sel_] if small_disc.any() and not cfg.density.sparse_seeds
+                         else None)
+                masks, params_["refine"] = refine_masks(masks, views, cloud_,
+                                                        full.subset(removed), cfg.refine,
+                                                        plane, target, context, seeds)
+            except ImportError:
+                warnings_.append("refine: opencv-python-headless is not installed; masks are "
+                                 "the unrefined point silhouettes")
+            timings_["refine"] = time.perf_counter() - t0
+        if cfg.masks.hull_carve:
+            t0 = time.perf_counter()
+            masks, params_["hull_carve"] = hull_carve(masks, views, cloud_.xyz, cfg.masks)
+            timings_["hull_carve"] = time.perf_counter() - t0
+        return mesh, masks
+
+    mesh, masks = masks_of(sel, cloud, params, timings, warnings)
+    grown_in = np.intersect1d(grown_pts, sel)
+    if cfg.noise.grow_local > 0 and len(grown_in) and len(grown_in) < len(sel):
+        # the grown points may add pixels only near their own discs: the masks made without
+        # them (as if grow_scale were off), plus what the masks with them add within
+        # grow_local median disc radii of a grown point (elsewhere a grown point moves the
+        # hull steps' and GrabCut's choices, in views that never see it near there)
+        t0 = time.perf_counter()
+        base_sel = np.setdiff1d(sel, grown_in)
+        base = masks_of(base_sel, full.subset(base_sel), {}, {}, [])[1]
+        pos = np.searchsorted(sel, grown_in)
+        r = cfg.noise.grow_local * float(params.get("masks", {}).get("median_radius", 0.0)
+                                         or np.median(point_radii(cloud.xyz, cfg.masks.splat_k,
+                                                                  cfg.masks.splat_scale)))
+        # (a disc wider than the image's sides covers all of it: no wider box to draw)
+        cap = min(cfg.masks.max_splat_px * cfg.noise.grow_local,
+                  max(v.camera.width + v.camera.height for v in mask_views))
+        near = point_masks(cloud.xyz[pos], np.full(len(pos), r), mask_views,
+                           MaskConfig(closing_kernel=1, fill_holes=False, max_splat_px=cap),
+                           finish=False)
+        added_px = 0
+        for k in masks:
+            nb = near.get(k)
+            m = base[k] | (masks[k] & nb) if nb is not None and nb.shape == base[k].shape \
+                else base[k]
+            added_px += int((m & ~base[k]).sum())
+            masks[k] = m
+        params.setdefault("noise", {})["grow_local"] = {"radius": r, "added_px": added_px}
+        timings["grow_local"] = time.perf_counter() - t0
     if wanted is not None:
         masks = {k: m for k, m in masks.items() if k in wanted}
         params["mask_keys"] = len(masks)
