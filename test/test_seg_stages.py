@@ -250,6 +250,46 @@ def test_splat_discs_with_centres_outside_the_image():
     assert np.array_equal(far, m)
 
 
+def test_splat_discs_far_larger_than_the_image_draw_exactly_in_bounded_memory():
+    """A huge max_splat_px once built a distance-transform box of (2 r)^2 pixels (r = 1e5:
+    80 GB); such bins are drawn as row spans, pixel for pixel what d <= r gives."""
+    import tracemalloc
+    from ooi_seg_ros.seg.masks import _draw_spans, _splat
+    rng = np.random.default_rng(0)
+    h, w = 48, 64
+    r = 1.2 ** np.floor(np.log(1e5) / np.log(1.2))  # the radius the bins round 1e5 down to
+    # three discs that each cover a part of the image: from the left, from below, a corner
+    uv = np.array([[10.0 - r, 20.0], [30.0, r + 40.0], [-r / 1.4142, -r / 1.4142]])
+    rad = np.array([1e5, 1e5, 1e5])
+    tracemalloc.start()
+    m = _splat(uv, rad, h, w)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 50e6
+    # the same discs by brute force
+    yy, xx = np.mgrid[0:h, 0:w]
+    ref = np.zeros((h, w), bool)
+    for u, v in np.rint(uv).astype(int):
+        ref |= (xx - u) ** 2 + (yy - v) ** 2 <= r * r
+    assert 0 < ref.sum() < h * w and np.array_equal(m, ref)
+    # ellipses as large: the same discs as covariances r^2 I
+    from ooi_seg_ros.seg.masks import _splat_ellipses
+    tracemalloc.start()
+    e = _splat_ellipses(uv, np.repeat((r * r * np.eye(2))[None], 3, axis=0), h, w)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 50e6 and np.array_equal(e, m)
+    # the span drawing agrees with the distance transform on ordinary discs too
+    ui, vi = rng.integers(-8, 70, 200), rng.integers(-8, 55, 200)
+    for rr in (1.0, 2.5, 7.3):
+        spans = np.zeros((h, w), bool)
+        _draw_spans(spans, ui, vi, rr, chunk=37)
+        ref = np.zeros((h, w), bool)
+        for u, v in zip(ui, vi):
+            ref |= (xx - u) ** 2 + (yy - v) ** 2 <= rr * rr
+        assert np.array_equal(spans, ref)
+
+
 def test_ellipse_splats_hug_a_thin_tube_and_stay_discs_on_a_surface():
     """Sparse points along a thin rod: the ellipse splat narrows across the rod (a fraction
     of the disc's area, every point still drawn, the rod's true width covered); on a

@@ -142,6 +142,33 @@ def mesh_masks(mesh: TriMesh, views: list[View], cfg: MaskConfig) -> dict[str, n
     return out
 
 
+_EDT_BOX_MAX = 1 << 22  # pixels: larger boxes around a bin of discs are drawn as row spans
+
+
+def _draw_spans(mask: np.ndarray, ui: np.ndarray, vi: np.ndarray, r: float,
+                chunk: int = 2048) -> None:
+    """OR the discs of radius ``r`` px at integer centres (``ui``, ``vi``) into ``mask``.
+
+    Row by row (the same pixels as the distance transform's ``d <= r``): memory grows with
+    discs x image rows, not with the disc area.
+    """
+    h, w = mask.shape
+    ys = np.arange(h)
+    for i in range(0, len(ui), chunk):
+        u, v = ui[i:i + chunk, None], vi[i:i + chunk, None]
+        dy2 = (ys[None, :] - v) ** 2
+        rows = dy2 <= r * r
+        half = np.floor(np.sqrt(np.where(rows, r * r - dy2, 0.0))).astype(np.int64)
+        lo = np.clip(u - half, 0, w)
+        hi = np.clip(u + half + 1, 0, w)
+        rows &= hi > lo
+        k, y = np.nonzero(rows)
+        diff = np.zeros((h, w + 1), np.int32)
+        np.add.at(diff, (y, lo[k, y]), 1)
+        np.add.at(diff, (y, hi[k, y]), -1)
+        mask |= np.cumsum(diff[:, :w], axis=1) > 0
+
+
 def _splat(uv: np.ndarray, rad: np.ndarray, h: int, w: int) -> np.ndarray:
     """Union of discs (centres ``uv`` [N,2], radii ``rad`` [N] px) as a bool [h,w] image.
 
@@ -177,6 +204,11 @@ def _splat(uv: np.ndarray, rad: np.ndarray, h: int, w: int) -> np.ndarray:
         Y0, Y1 = vb[sel].min() - pad, vb[sel].max() + pad + 1
         x0, x1, y0, y1 = max(0, X0), min(w, X1), max(0, Y0), min(h, Y1)
         if x0 >= x1 or y0 >= y1:
+            continue
+        if (Y1 - Y0) * (X1 - X0) > max(4 * h * w, _EDT_BOX_MAX):
+            # discs far larger than the image (a huge max_splat_px, a point at the lens): the
+            # box around them would not fit in memory; draw their row spans on the image instead
+            _draw_spans(mask, ub[sel], vb[sel], r)
             continue
         seeds = np.ones((Y1 - Y0, X1 - X0), bool)
         seeds[vb[sel] - Y0, ub[sel] - X0] = False
@@ -307,6 +339,18 @@ def _splat_ellipses(uv: np.ndarray, cov: np.ndarray, h: int, w: int,
         sel = np.flatnonzero(level == lv)
         d = np.arange(-R, R + 1)
         per = (2 * R + 1) ** 2
+        if per > max(4 * h * w, _EDT_BOX_MAX):
+            # ellipses far larger than the image: test each on its box clipped to the image
+            for i in sel:
+                x0, x1 = max(0, cu[i] - R), min(w, cu[i] + R + 1)
+                y0, y1 = max(0, cv[i] - R), min(h, cv[i] + R + 1)
+                if x0 >= x1 or y0 >= y1:
+                    continue
+                dx = (np.arange(x0, x1) - cu[i])[None, :].astype(float)
+                dy = (np.arange(y0, y1) - cv[i])[:, None].astype(float)
+                q = ia[i] * dx * dx + 2 * ib[i] * dx * dy + ic[i] * dy * dy
+                mask[y0:y1, x0:x1] |= q <= 1.0 + 1e-9
+            continue
         for s0 in range(0, len(sel), max(1, chunk // per)):
             s = sel[s0:s0 + max(1, chunk // per)]
             dx = d[None, None, :].astype(float)  # [1,1,2R+1] (pixel-centred, as ``_splat``)
