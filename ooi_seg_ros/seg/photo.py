@@ -78,6 +78,11 @@ class PlaneCheckConfig:
     min_region: int = 9  # floor regions smaller than this (px) are dropped
     extra_planes: int = 0  # also test up to this many large background planes (walls) that
     # lie clear of the object (sequential RANSAC on the points the stages removed)
+    tune_support: int = 0  # shift the support plane along its normal to where the most
+    # background pixels near the object match their neighbours: this many offsets each side,
+    # spread over the plane's inlier band (0 = off). The points' least-squares plane can sit
+    # a few mm off the surface, and on fine texture a 1-px parallax error fails every patch
+    tune_views: int = 8  # tune_support: views it scores (spread over the masked views)
     over_seeds: bool = False  # floor pixels override the projected object seeds (an OOI
     # point that projects onto the floor is a floor point the earlier stages kept)
     cache_views: int = 24  # images kept in memory as float
@@ -338,6 +343,80 @@ class PlaneConsistency:
             t = -(v.pose.t @ n + d0) / den
         hit = np.isfinite(t) & (t > 0)
         return v.pose.t + np.where(hit, t, 0.0)[:, None] * d, hit
+
+    def tune_support(self, masks: dict, span: float) -> dict:
+        """Shift the support plane (``planes[0]``) along its normal by the offset in
+        [-``span``, ``span``] (``cfg.tune_support`` steps each side) under which the most
+        textured background pixels near the object match the warp into >= ``rank``
+        neighbours. Scored on up to ``cfg.tune_views`` views, in the box around each mask
+        (enlarged by half its size) outside the mask dilated by a patch: the object never
+        votes. Keeps the plane where no offset matches more pixels than the plane as fitted.
+        """
+        import cv2
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        steps = int(cfg.tune_support)
+        out: dict = {"offset": 0.0, "span": float(span)}
+        if steps <= 0 or not np.isfinite(span) or span <= 0:
+            return out
+        idx = [i for i, v in enumerate(self.views) if v.key in masks and masks[v.key].any()]
+        if not idx:
+            return out
+        spread = np.linspace(0, len(idx) - 1, max(1, int(cfg.tune_views)))
+        pick = [idx[int(k)] for k in np.unique(spread.round().astype(int))]
+        offsets = np.linspace(-span, span, 2 * steps + 1)
+        counts = np.zeros(len(offsets), np.int64)
+        win = max(1, int(cfg.window))
+        n0, d0 = self.planes[0, :3], float(self.planes[0, 3])
+
+        def box_mean(x: np.ndarray) -> np.ndarray:
+            return cv2.boxFilter(x, -1, (win, win), borderType=cv2.BORDER_REPLICATE)
+
+        for i in pick:
+            v = self.views[i]
+            m = masks[v.key]
+            ys, xs = np.nonzero(m)
+            ph = max(win, int(0.5 * (ys.max() - ys.min() + 1)))
+            pw = max(win, int(0.5 * (xs.max() - xs.min() + 1)))
+            box = (max(0, ys.min() - ph), min(m.shape[0], ys.max() + ph + 1),
+                   max(0, xs.min() - pw), min(m.shape[1], xs.max() + pw + 1))
+            y0, y1, x0, x1 = box
+            test = ~ndimage.binary_dilation(m, iterations=win)[y0:y1, x0:x1]
+            ga = _grey(self._image(i)[y0:y1, x0:x1])
+            ma = box_mean(ga)
+            va = np.maximum(box_mean(ga * ga) - ma * ma, 0.0)
+            test &= va > cfg.min_std ** 2
+            if not test.any():
+                continue
+            d = self._crop_dirs(i, box) @ v.pose.R.T
+            den = d @ n0
+            for o, off in enumerate(offsets):
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t = -(v.pose.t @ n0 + d0 - off) / den
+                hit = np.isfinite(t) & (t > 0)
+                pts = PointSet(v.pose.t + np.where(hit, t, 0.0)[:, None] * d, hit)
+                votes = np.zeros(ga.shape, np.int32)
+                for j in self.nbrs[i]:
+                    b, ok = self.sample(j, pts, None, ga.shape)
+                    if not ok.any():
+                        continue
+                    gb = _grey(b)
+                    mb = box_mean(gb)
+                    vb = np.maximum(box_mean(gb * gb) - mb * mb, 0.0)
+                    ncc = (box_mean(ga * gb) - ma * mb) / np.sqrt(np.maximum(va * vb, 1e-6))
+                    whole = box_mean(ok.astype(np.float32)) > 0.999
+                    diff = box_mean(_grey(np.abs(self._image(i)[y0:y1, x0:x1] - b)))
+                    votes += whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
+                counts[o] += int(((votes >= max(1, cfg.rank)) & test).sum())
+        best = int(np.argmax(counts))
+        if counts[best] > counts[steps]:
+            self.planes[0, 3] = d0 - offsets[best]
+            out["offset"] = float(offsets[best])
+        out["matched"] = counts.tolist()
+        out["views"] = len(pick)
+        out["seconds"] = round(time.perf_counter() - t0, 3)
+        self.seconds += time.perf_counter() - t0
+        return out
 
     def sample(self, j: int, X, hit: Optional[np.ndarray], shape: tuple[int, int]
                ) -> tuple[np.ndarray, np.ndarray]:

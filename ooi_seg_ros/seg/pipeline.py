@@ -524,7 +524,8 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
                          else None)
                 masks, params_["refine"] = refine_masks(masks, views, cloud_,
                                                         full.subset(removed), cfg.refine,
-                                                        plane, target, context, seeds)
+                                                        plane, target, context, seeds,
+                                                        fp.get("band_inliers"))
             except ImportError:
                 warnings_.append("refine: opencv-python-headless is not installed; masks are "
                                  "the unrefined point silhouettes")

@@ -1247,7 +1247,8 @@ def point_support(xyz: np.ndarray, masks: dict[str, np.ndarray], views: list[Vie
 def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                  background: SfmCloud, cfg: RefineConfig, plane: Optional[np.ndarray] = None,
                  target: Optional[np.ndarray] = None, context_masks: Optional[dict] = None,
-                 seed_points: Optional[np.ndarray] = None) -> tuple[dict, dict]:
+                 seed_points: Optional[np.ndarray] = None,
+                 plane_band: Optional[float] = None) -> tuple[dict, dict]:
     """GrabCut-refined masks {key: bool [H,W]} and counts of refined/rejected views.
 
     ``seed_points`` (optional, bool [len(ooi)]): with ``fg_seeds="projections"``, only these
@@ -1322,6 +1323,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         if (cfg.plane_check.behind or cfg.plane_check.shifted or cfg.plane_check.object_keep
                 or cfg.plane_check.object_guard):
             floor.ooi_xyz = ooi.xyz
+        if cfg.plane_check.tune_support > 0 and plane_band is not None:
+            params["tune_support"] = floor.tune_support(masks, float(plane_band))
     cache: dict = {}
     models: Optional[dict] = {} if cfg.hull_add else None
     if cfg.fg_seeds == "observations":
