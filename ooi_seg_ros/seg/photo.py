@@ -78,8 +78,8 @@ class PlaneCheckConfig:
     min_region: int = 9  # floor regions smaller than this (px) are dropped
     extra_planes: int = 0  # also test up to this many large background planes (walls) that
     # lie clear of the object (sequential RANSAC on the points the stages removed)
-    tune_support: int = 0  # shift the support plane along its normal to where the most
-    # background pixels near the object match their neighbours: this many offsets each side,
+    tune_support: int = 0  # shift the support plane along its normal to the nearest peak of
+    # the background pixels near the object that match their neighbours: offsets each side,
     # spread over the plane's inlier band (0 = off). The points' least-squares plane can sit
     # a few mm off the surface, and on fine texture a 1-px parallax error fails every patch
     tune_views: int = 8  # tune_support: views it scores (spread over the masked views)
@@ -346,11 +346,12 @@ class PlaneConsistency:
 
     def tune_support(self, masks: dict, span: float) -> dict:
         """Shift the support plane (``planes[0]``) along its normal by the offset in
-        [-``span``, ``span``] (``cfg.tune_support`` steps each side) under which the most
-        textured background pixels near the object match the warp into >= ``rank``
-        neighbours. Scored on up to ``cfg.tune_views`` views, in the box around each mask
-        (enlarged by half its size) outside the mask dilated by a patch: the object never
-        votes. Keeps the plane where no offset matches more pixels than the plane as fitted.
+        [-``span``, ``span``] (``cfg.tune_support`` steps each side) at the peak of the count
+        of textured background pixels near the object that match the warp into >= ``rank``
+        neighbours nearest the fitted plane (a hill climb from offset 0). Scored on up to
+        ``cfg.tune_views`` views, in the box around each mask (enlarged by half its size)
+        outside the mask dilated by a patch: the object never votes. Keeps the plane where
+        no offset matches more pixels than the plane as fitted.
         """
         import cv2
         t0 = time.perf_counter()
@@ -408,7 +409,16 @@ class PlaneConsistency:
                     diff = box_mean(_grey(np.abs(self._image(i)[y0:y1, x0:x1] - b)))
                     votes += whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
                 counts[o] += int(((votes >= max(1, cfg.rank)) & test).sum())
-        best = int(np.argmax(counts))
+        # climb from the fitted plane to the nearest peak of the count, not the highest one:
+        # a periodic texture (a knit, tiles) matches again at an offset whose parallax is one
+        # period, and the fitted plane is off by its noise, not by a period
+        best = steps
+        while True:
+            up = [k for k in (best - 1, best + 1) if 0 <= k < len(counts)
+                  and counts[k] > counts[best]]
+            if not up:
+                break
+            best = max(up, key=lambda k: counts[k])
         if counts[best] > counts[steps]:
             self.planes[0, 3] = d0 - offsets[best]
             out["offset"] = float(offsets[best])
