@@ -156,6 +156,18 @@ def _grey(x: np.ndarray) -> np.ndarray:
     return (x[..., 0] + x[..., 1] + x[..., 2]) * np.float32(1.0 / 3.0)
 
 
+def _warp_ncc(ga: np.ndarray, ma: np.ndarray, va: np.ndarray, b: np.ndarray, ok: np.ndarray,
+              box_mean) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Patch NCC of grey crop ``ga`` (patch means ``ma``, variances ``va``) against a
+    neighbour's warp ``b`` [h, w, 3] (valid where ``ok``), where the whole patch lies inside
+    the neighbour's frame, and the warp's patch means."""
+    gb = _grey(b)
+    mb = box_mean(gb)
+    vb = np.maximum(box_mean(gb * gb) - mb * mb, 0.0)
+    ncc = (box_mean(ga * gb) - ma * mb) / np.sqrt(np.maximum(va * vb, 1e-6))
+    return ncc, box_mean(ok.astype(np.float32)) > 0.999, mb
+
+
 def _pair_gain(ma: np.ndarray, mb: np.ndarray, sel: np.ndarray, lo: float = 0.5,
                hi: float = 2.0) -> float:
     """The exposure gain that brings a neighbour's warp (patch means ``mb``) to this view's
@@ -401,11 +413,7 @@ class PlaneConsistency:
                     b, ok = self.sample(j, pts, None, ga.shape)
                     if not ok.any():
                         continue
-                    gb = _grey(b)
-                    mb = box_mean(gb)
-                    vb = np.maximum(box_mean(gb * gb) - mb * mb, 0.0)
-                    ncc = (box_mean(ga * gb) - ma * mb) / np.sqrt(np.maximum(va * vb, 1e-6))
-                    whole = box_mean(ok.astype(np.float32)) > 0.999
+                    ncc, whole, mb = _warp_ncc(ga, ma, va, b, ok, box_mean)
                     diff = box_mean(_grey(np.abs(self._image(i)[y0:y1, x0:x1] - b)))
                     votes += whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
                 counts[o] += int(((votes >= max(1, cfg.rank)) & test).sum())
@@ -598,11 +606,7 @@ class PlaneConsistency:
                 b, ok = self.sample(j, pts, None, ga.shape)
                 if not ok.any():
                     continue
-                gb = _grey(b)
-                mb = box_mean(gb)
-                vb = np.maximum(box_mean(gb * gb) - mb * mb, 0.0)
-                ncc = (box_mean(ga * gb) - ma * mb) / np.sqrt(np.maximum(va * vb, 1e-6))
-                whole = box_mean(ok.astype(np.float32)) > 0.999  # patch all inside view j
+                ncc, whole, mb = _warp_ncc(ga, ma, va, b, ok, box_mean)
                 gain = 1.0
                 if cfg.exposure:
                     gain = _pair_gain(ma, mb, whole & textured & (ncc > cfg.min_ncc))
