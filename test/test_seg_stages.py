@@ -2059,3 +2059,53 @@ def test_colour_vote_tells_a_point_on_the_object_from_a_floater_beside_it():
     vote = colour_vote(xyz, obj, bg, views, k=2)
     assert vote[0] == 1.0 and vote[1] == 0.0 and np.isnan(vote[2])  # the last: no view frames it
     assert np.isnan(colour_vote(xyz, obj[:0], bg, views)).all()  # no reference colours
+
+
+def test_parallax_guard_measures_the_displacement_of_a_raised_plane_in_a_neighbour():
+    """plane_check.parallax_guard: two nadir cameras a baseline b apart at height D over the
+    plane z = 0; the ray through view 0's centre meets the plane raised by h (guard x the
+    OOI points' radius) at (0, 0, h), which view 1 sees fx b h / (D (D - h)) px from the
+    plane's point. With the guard on, a neighbour whose parallax is under ``parallax_px``
+    gives no floor votes; far enough apart it votes as before."""
+    from ooi_seg_ros.core.geometry import look_at
+    from ooi_seg_ros.core.types import CameraIntrinsics, View
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency, PointSet
+    W, H, f, D = 128, 96, 100.0, 2.0
+    rng = np.random.default_rng(0)
+    tex = ndimage.gaussian_filter(rng.uniform(0, 255, (200, 200)), 1.5)
+    tex = 128 + (tex - tex.mean()) * (60 / tex.std())
+    cam = CameraIntrinsics(W, H, f, f, (W - 1) / 2, (H - 1) / 2)
+
+    def view(k, x):
+        eye = np.array([x, 0.0, D])
+        pose = look_at(eye, eye - np.array([0, 0, 1.0]), up=np.array([0, 1.0, 0]))
+        d = undistorted_dirs(cam).reshape(-1, 3) @ pose.R.T
+        P = eye + d * (-D / d[:, 2:3])  # where each pixel's ray meets the floor
+        g = ndimage.map_coordinates(tex, [P[:, 1] * f / D + 100, P[:, 0] * f / D + 100],
+                                    order=1).reshape(H, W)
+        img = np.repeat(np.clip(g, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+        return View(key=str(k), stamp_ns=k, camera=cam, pose=pose, image=img)
+
+    ring = np.c_[0.5 * np.cos(np.linspace(0, 2 * np.pi, 360, endpoint=False)),
+                 0.5 * np.sin(np.linspace(0, 2 * np.pi, 360, endpoint=False)),
+                 np.full(360, 0.3)]
+    box = (0, H, 0, W)
+    for b in (0.2, 0.02):
+        views = [view(0, 0.0), view(1, b)]
+        cfg = PlaneCheckConfig(enabled=True, min_deg=0.1, max_deg=40.0, rank=1,
+                               min_region=1, parallax_guard=0.5)
+        pc = PlaneConsistency(views, np.array([0.0, 0.0, 1.0, 0.0]), np.zeros(3), cfg)
+        pc.ooi_xyz = ring
+        assert pc.ooi_radius() == pytest.approx(0.5)
+        h = 0.5 * 0.5
+        X, hit = pc.plane_points(0, box, 0)
+        par = pc._parallax(1, PointSet(X, hit), pc._raised_points(0, box, None), box, (H, W))
+        assert par[H // 2, W // 2] == pytest.approx(f * b * h / (D * (D - h)), rel=1e-3)
+        guarded = pc.floor_map(0, box).mean()
+        pc.cfg = PlaneCheckConfig(**{**cfg.__dict__, "parallax_guard": 0.0})
+        free = pc.floor_map(0, box).mean()
+        assert free > 0.5  # the texture lines up through the plane either way
+        if b == 0.2:  # 1.43 px at the centre: every pixel's vote stands
+            assert guarded == free
+        else:  # 0.14 px: a surface h above the floor would match as well; no votes
+            assert guarded == 0.0

@@ -32,7 +32,11 @@ noise (measured at the matching patches' centres) and better than at the object'
 ``object_guard`` keeps a patch that matches through the support plane from voting floor where
 the object's own depth (the OOI discs covering the whole patch) explains it at least as well:
 low on the object, next to the floor, the two warps differ by little parallax (a tyre on
-the lawn). ``object_keep`` is the converse, a map of silhouette pixels whose colour the
+the lawn). ``parallax_guard`` is the same caution where no OOI disc covers the object (a
+sparsely seeded pot's smooth foot): a neighbour votes floor at a pixel only where a surface a
+little above the plane (a share of the object's radius) would land at least ``parallax_px``
+from the plane's warp in it, i.e. where its baseline can tell the two apart at all.
+``object_keep`` is the converse, a map of silhouette pixels whose colour the
 object's depth (the nearest OOI point's disc over them) explains in the neighbours and the
 support plane does not; the refinement keeps them object whatever GrabCut's colour models
 say.
@@ -83,6 +87,12 @@ class PlaneCheckConfig:
     # spread over the plane's inlier band (0 = off). The points' least-squares plane can sit
     # a few mm off the surface, and on fine texture a 1-px parallax error fails every patch
     tune_views: int = 8  # tune_support: views it scores (spread over the masked views)
+    parallax_guard: float = 0.0  # support plane: a neighbour's matching patch votes floor only
+    # where a surface this far above the plane (a share of the OOI points' radius) would be
+    # displaced by >= ``parallax_px`` from the plane's warp in it (0 = off). Smooth parts of
+    # the object just above its support (a pot's foot) move by less than a pixel between
+    # close neighbours and match the plane's warp as well as the floor does
+    parallax_px: float = 1.0  # parallax_guard: the displacement (px of the compared crop)
     over_seeds: bool = False  # floor pixels override the projected object seeds (an OOI
     # point that projects onto the floor is a floor point the earlier stages kept)
     cache_views: int = 24  # images kept in memory as float
@@ -541,6 +551,48 @@ class PlaneConsistency:
         inside = (gu > -rpx) & (gu < w - 1 + rpx) & (gv > -rpx) & (gv < h - 1 + rpx)
         return disc_zbuffer(gu[inside], gv[inside], rpx[inside], z[ok][inside], (h, w))
 
+    def ooi_radius(self) -> float:
+        """The OOI points' radius: the 90th percentile of their distance from their median
+        (0 without points)."""
+        if self.ooi_xyz is None or not len(self.ooi_xyz):
+            return 0.0
+        X = np.asarray(self.ooi_xyz, float)
+        return float(np.quantile(np.linalg.norm(X - np.median(X, 0), axis=1), 0.9))
+
+    def _raised_points(self, i: int, box: tuple[int, int, int, int],
+                       shape: Optional[tuple[int, int]]) -> Optional[PointSet]:
+        """Where the rays of the crop (as ``plane_points``) meet the support plane raised by
+        ``parallax_guard`` x ``ooi_radius`` towards the object (towards the camera without OOI
+        points); None when the height is 0."""
+        h = self.cfg.parallax_guard * self.ooi_radius()
+        if h <= 0:
+            return None
+        v = self.views[i]
+        n, d0 = self.planes[0, :3], float(self.planes[0, 3])
+        ref = (np.median(self.ooi_xyz @ n) if self.ooi_xyz is not None and len(self.ooi_xyz)
+               else v.pose.t @ n)
+        side = 1.0 if ref + d0 >= 0 else -1.0
+        d = self._crop_dirs(i, box, shape) @ v.pose.R.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (side * h - d0 - v.pose.t @ n) / (d @ n)
+        hit = np.isfinite(t) & (t > 0)
+        return PointSet(v.pose.t + np.where(hit, t, 0.0)[:, None] * d, hit)
+
+    def _parallax(self, j: int, pts: PointSet, raised: PointSet,
+                  box: tuple[int, int, int, int], shape: tuple[int, int]) -> np.ndarray:
+        """Per pixel [h, w] of the crop: how far (px of the ``shape`` grid) the raised
+        plane's point lies from the plane's in view ``j``; inf where either does not project
+        (no surface at that height is seen there to confuse)."""
+        cj, pj = self.views[j].camera, self.views[j].pose
+        u0, v0, z0 = pts.project(cj, pj)
+        u1, v1, z1 = raised.project(cj, pj)
+        y0, y1, x0, x1 = box
+        sx, sy = shape[1] / (x1 - x0), shape[0] / (y1 - y0)
+        with np.errstate(invalid="ignore", over="ignore"):
+            par = np.hypot((u1 - u0) * sx, (v1 - v0) * sy)
+            par[~(pts.hit & raised.hit & (z0 > 0) & (z1 > 0))] = np.inf
+        return par.reshape(shape)
+
     def floor_map(self, i: int, box: tuple[int, int, int, int],
                   shape: Optional[tuple[int, int]] = None) -> np.ndarray:
         """Bool [h, w] of the crop ``box`` (y0, y1, x0, x1) of view ``i``: pixels on the floor.
@@ -583,6 +635,9 @@ class PlaneConsistency:
                            has)
         keep = np.zeros(ga.shape, np.int32)
         pixel = np.zeros(ga.shape, np.int32)  # pixel_votes: per-pixel floor votes
+        raised = None  # parallax_guard: the rays' points a height above the support plane
+        if cfg.parallax_guard > 0:
+            raised = self._raised_points(i, box, None if shape is None else ga.shape)
 
         def consistent(X: np.ndarray, hit: np.ndarray, rank: int, win: int,
                        support: bool = False, guard: bool = False) -> np.ndarray:
@@ -614,6 +669,8 @@ class PlaneConsistency:
                 pix = _grey(np.abs(a - b))  # per-pixel colour difference to the warp
                 diff = box_mean(pix)
                 match = whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
+                if support and raised is not None:
+                    match &= self._parallax(j, pts, raised, box, ga.shape) >= cfg.parallax_px
                 bo = oko = None  # the neighbour at the object's depth (sampled once)
                 if guard and obj is not None:
                     bo, oko = self.sample(j, obj, None, ga.shape)
