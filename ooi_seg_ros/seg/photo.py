@@ -91,7 +91,9 @@ class PlaneCheckConfig:
     # where a surface this far above the plane (a share of the OOI points' radius) would be
     # displaced by >= ``parallax_px`` from the plane's warp in it (0 = off). Smooth parts of
     # the object just above its support (a pot's foot) move by less than a pixel between
-    # close neighbours and match the plane's warp as well as the floor does
+    # close neighbours and match the plane's warp as well as the floor does. Off: 0.06 lifts
+    # the sparsest stool capture (+0.008) but costs the bicycle 0.008 (far lawn) and lets the
+    # real bonsai's cloth join (a dense capture's close neighbours; BENCHMARKS, session 65)
     parallax_px: float = 1.0  # parallax_guard: the displacement (px of the compared crop)
     over_seeds: bool = False  # floor pixels override the projected object seeds (an OOI
     # point that projects onto the floor is a floor point the earlier stages kept)
