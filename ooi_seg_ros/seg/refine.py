@@ -31,6 +31,7 @@ from ..core.types import SfmCloud, View
 from .masks import (MaskConfig, fill_small_holes, outline_vote, point_masks,
                     project_distorted)
 from .photo import PlaneCheckConfig, PlaneConsistency, PointSet
+from .thin import BridgeConfig, thin_bridges
 
 
 @dataclass
@@ -187,6 +188,9 @@ class RefineConfig:
     hull_free_dilate: int = 1  # hull_free: each feature's depth holds over a (2r+1)^2 window
     # (features are sparse: ~2% of the pixels); 0: the feature's own pixel only
     # (its cost: one projection of the grid per view; 1M and 4M gave the same masks +-0.001)
+    bridges: BridgeConfig = field(default_factory=BridgeConfig)  # last: thin straight parts
+    # (spokes, struts) that span a hole of the mask from one side to the other join it
+    # (``thin.thin_bridges``; GrabCut's smoothness cuts a part ~1 px wide whatever its colour)
     plane_check: PlaneCheckConfig = field(default_factory=PlaneCheckConfig)  # pixels whose
     # colour the support plane explains (photo-consistent with nearby views) are background
 
@@ -1367,6 +1371,16 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
         for v in views:
             if v.key in out:
                 out[v.key] = outline_vote(out[v.key], v.get_image())
+    if cfg.bridges.enabled:
+        tot = {"views": 0, "bridges": 0, "added_px": 0}
+        for v in views:
+            if v.key in out:
+                add, st = thin_bridges(v.get_image(), out[v.key], cfg.bridges)
+                out[v.key] = out[v.key] | add
+                tot["views"] += int(st["bridges"] > 0)
+                tot["bridges"] += st["bridges"]
+                tot["added_px"] += st["added_px"]
+        params["bridges"] = tot
     params.update({"refined": refined, "rejected": rejected})
     if floor is not None:
         params["plane_check_s"] = round(floor.seconds, 3)
