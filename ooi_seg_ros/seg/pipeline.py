@@ -33,6 +33,10 @@ After the additions, a pixel the neighbour views place past the object leaves th
 any depth inside it -- a chair or shelf seen between the leaves, kept by GrabCut for its
 colour; ``behind_open``: only where a 2x2 square fits, not the lone pixels and 1-px streaks a
 striped surface aliases into).
+Last, thin straight parts that span a hole of a view's mask from one side to the other -- a
+wheel's spokes between its rim and its hub -- join it (``refine.bridges``, ``thin.py``): a
+line filter's response, thresholded against the hole's own texture, along a chord whose two
+ends meet the mask.
 Each stage is a function with a typed input and output and its own config dataclass, so
 stages can be swapped by configuration.
 """
@@ -122,6 +126,7 @@ def preset(method: str) -> dict:
                            "border_leak_hull": True, "hull_thin_agree": 0.3,
                            "hull_thin_distinct": 4, "behind_cut": "mask",
                            "behind_open": True, "outline_vote": True, "grown_open": 1,
+                           "bridges": {"enabled": True},
                            "plane_check": {"enabled": True, "over_seeds": True,
                                            "extra_planes": 3, "behind": True,
                                            "shifted": True, "object_keep": True,

@@ -21,8 +21,9 @@ two ends meet the object, and that is what this pass looks for:
    above ``contrast`` x ``low_share``): thin parts are sparse within a hole, so those
    percentiles measure the texture, not the parts.
 3. **Straight.** Candidates of one direction (+-1 bin) are joined 8-connected; a run is kept
-   when it is at least ``min_length`` px long (default: ``length``), its pixels lie within
-   ``max_rms`` px (RMS) of its principal axis, and that axis agrees with the direction.
+   when at least ``min_inliers`` of its pixels lie within 1 px of its principal axis (fitted
+   again on those), at an RMS distance of at most ``max_rms``, the axis agrees with the
+   direction and the inliers span at least ``min_length`` px (default: ``length``).
 4. **A bridge.** The run's axis is followed both ways through the hole; both ends must reach
    the mask (not the image's side). The chord between them is sampled every pixel: it is a
    bridge when at least ``support`` of its samples (the best of the pixel and its two
@@ -59,7 +60,9 @@ class BridgeConfig:
     # direction
     q_low: float = 90.0  # support sample: above this percentile of them
     min_length: int = 0  # px: shortest candidate run (0 = ``length``)
-    max_rms: float = 0.8  # px: RMS distance of a run's pixels from its axis
+    max_rms: float = 0.8  # px: RMS distance of a run's pixels (those within 1 px) from its axis
+    min_inliers: float = 0.7  # share of a run's pixels that must lie within 1 px of its axis
+    # (a run along a spoke often carries a speck or a crossing spoke's pixel: refitted without)
     support: float = 0.9  # share of a chord's samples that must respond (a texture streak
     # wanders off a straight chord; measured: 0.75 let 4x more pixels off the spokes join)
     min_hole: int = 0  # px: holes smaller than this are skipped (0 = ``length`` squared)
@@ -143,6 +146,26 @@ def _chord_end(c0: np.ndarray, ax: np.ndarray, start: float, sign: int, mask: np
     return float(s[i]) if mask[y[i], x[i]] else None
 
 
+def _straight(p: np.ndarray, max_rms: float, min_inliers: float
+              ) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Principal axis of the points ``p`` [N, 2] (x, y) refitted on the points within 1 px
+    of the first fit -- a texture speck or a crossing line touching a run does not bend it
+    -- when at least ``min_inliers`` of them lie there at an RMS distance of at most
+    ``max_rms``: (centre, unit axis, the inliers' coordinates along it); else None."""
+    sel = np.ones(len(p), bool)
+    for _ in range(2):
+        c0 = p[sel].mean(0)
+        q = p[sel] - c0
+        _, vec = np.linalg.eigh(q.T @ q / len(q))
+        perp = (p - c0) @ vec[:, 0]
+        sel = np.abs(perp) <= 1.0
+        if sel.sum() < 2:
+            return None
+    if sel.mean() < min_inliers or np.sqrt((perp[sel] ** 2).mean()) > max_rms:
+        return None
+    return c0, vec[:, 1], (p[sel] - c0) @ vec[:, 1]
+
+
 def thin_bridges(img: np.ndarray, mask: np.ndarray, cfg: BridgeConfig
                  ) -> tuple[np.ndarray, dict]:
     """Pixels (bool [H, W]) of thin straight parts bridging holes of ``mask``, and counts."""
@@ -206,12 +229,11 @@ def thin_bridges(img: np.ndarray, mask: np.ndarray, cfg: BridgeConfig
             if len(ry) < 0.7 * min_len:
                 continue
             p = np.stack([rx + sl[1].start, ry + sl[0].start], 1).astype(float)
-            c0 = p.mean(0)
-            q = p - c0
-            _, vec = np.linalg.eigh(q.T @ q / len(q))
-            ax = vec[:, 1]
-            along, perp = q @ ax, q @ vec[:, 0]
-            if along.max() - along.min() < min_len or np.sqrt((perp ** 2).mean()) > cfg.max_rms:
+            fit = _straight(p, cfg.max_rms, cfg.min_inliers)
+            if fit is None:
+                continue
+            c0, ax, along = fit
+            if along.max() - along.min() < min_len:
                 continue
             if abs(float(ax @ u)) < cos_tol:
                 continue
