@@ -98,10 +98,22 @@ def line_response(img: np.ndarray, length: int = 9, offset: int = 2, orientation
     if im.ndim == 2:
         im = im[..., None]
     out = np.zeros((orientations,) + im.shape[:2], np.float32)
+
+    def filt(k: np.ndarray) -> np.ndarray:
+        # the kernel cut to the box of its non-zero weights and its centre (a thin segment:
+        # OpenCV filters a small kernel directly, a 17x17 one by DFT), anchored at the centre
+        centre = k.shape[0] // 2
+        rows, cols = np.nonzero(k.any(1))[0], np.nonzero(k.any(0))[0]
+        r0, c0 = min(int(rows[0]), centre), min(int(cols[0]), centre)
+        r1, c1 = max(int(rows[-1]), centre), max(int(cols[-1]), centre)
+        box = np.ascontiguousarray(k[r0:r1 + 1, c0:c1 + 1])
+        return cv2.filter2D(im, -1, box, anchor=(centre - c0, centre - r0),
+                            borderType=cv2.BORDER_REFLECT)
+
     for t, (kc, k1, k2) in enumerate(_kernels(int(length), int(offset), int(orientations))):
-        c = cv2.filter2D(im, -1, kc, borderType=cv2.BORDER_REFLECT)
-        a = c - cv2.filter2D(im, -1, k1, borderType=cv2.BORDER_REFLECT)
-        b = c - cv2.filter2D(im, -1, k2, borderType=cv2.BORDER_REFLECT)
+        c = filt(kc)
+        a = c - filt(k1)
+        b = c - filt(k2)
         if a.ndim == 2:
             a, b = a[..., None], b[..., None]
         same = (a * b).sum(-1) > 0
