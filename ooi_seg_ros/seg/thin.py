@@ -33,8 +33,11 @@ two ends meet the object, and that is what this pass looks for:
 
 Only pixels inside holes are added; nothing is removed. A texture streak in a hole rarely
 spans it from one side of the object to the other at a response above the hole's own 90th
-percentile; a spoke does. Measured on the simulator's bicycle (BENCHMARKS, Segmentation >
-Session 66); the solid scenes have no holes with bridges and do not change.
+percentile; a spoke does. What it cannot tell is a straight line *behind* the hole from a
+part across it: a shelf's edge seen between two stems joins as a spoke would (the tabletop
+at 640x360, 125 px in 6 of 30 views). Measured (BENCHMARKS, Segmentation > Session 66): the
+bicycle at 640x360 0.900 / 0.947 -> 0.922 / 0.973 IoU / recall; the four solid scenes and
+the real bonsai's masks change by under 0.0001 IoU.
 """
 
 from __future__ import annotations
