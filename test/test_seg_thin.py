@@ -99,3 +99,13 @@ def test_line_response_is_a_ridge_not_an_edge():
     assert r[:, 25:35, 19:23].max() < 1e-3
     # on the line: the horizontal direction (bin 0) responds
     assert r[0, 10, 5] > 50 and r[0, 10, 5] == r[:, 10, 5].max()
+
+
+def test_an_option_out_of_range_is_refused_with_its_name():
+    from ooi_seg_ros.seg.thin import check_config
+    check_config(BridgeConfig(enabled=True))
+    for kw, name in (({"length": 1}, "length"), ({"support": 0.0}, "support"),
+                     ({"q_low": 99.0, "q_high": 90.0}, "q_low"),
+                     ({"orientations": 2}, "orientations"), ({"min_inliers": 1.5}, "min_inliers")):
+        with pytest.raises(ValueError, match=f"refine.bridges.{name}"):
+            check_config(BridgeConfig(enabled=True, **kw))

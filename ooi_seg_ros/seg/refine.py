@@ -31,7 +31,7 @@ from ..core.types import SfmCloud, View
 from .masks import (MaskConfig, fill_small_holes, outline_vote, point_masks,
                     project_distorted)
 from .photo import PlaneCheckConfig, PlaneConsistency, PointSet
-from .thin import BridgeConfig, thin_bridges
+from .thin import BridgeConfig, check_config, thin_bridges
 
 
 @dataclass
@@ -1277,6 +1277,8 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
     """
     if not 0.0 <= float(cfg.edge_alpha) <= 1.0:
         raise ValueError(f"refine.edge_alpha={cfg.edge_alpha}; it is a coverage in [0, 1]")
+    if cfg.bridges.enabled:
+        check_config(cfg.bridges)
     if not (np.isfinite(float(cfg.band_gaps)) and float(cfg.band_gaps) >= 0.0):
         raise ValueError(f"refine.band_gaps={cfg.band_gaps}; 0 (off) or a number of gaps > 0")
     if not (np.isfinite(float(cfg.seed_colour)) and float(cfg.seed_colour) >= 0.0):

@@ -71,6 +71,27 @@ class BridgeConfig:
     min_hole: int = 0  # px: holes smaller than this are skipped (0 = ``length`` squared)
 
 
+def check_config(cfg: BridgeConfig) -> None:
+    """ValueError naming the first ``refine.bridges`` option out of its range."""
+    bad = None
+    if int(cfg.length) < 3:
+        bad = f"length={cfg.length}; a segment of at least 3 px"
+    elif int(cfg.offset) < 1:
+        bad = f"offset={cfg.offset}; the side segments lie at least 1 px off"
+    elif int(cfg.orientations) < 4:
+        bad = f"orientations={cfg.orientations}; at least 4 directions over 180 degrees"
+    elif not 0.0 <= float(cfg.q_low) <= float(cfg.q_high) <= 100.0:
+        bad = f"q_low={cfg.q_low}, q_high={cfg.q_high}; percentiles with q_low <= q_high"
+    elif not 0.0 < float(cfg.support) <= 1.0:
+        bad = f"support={cfg.support}; a share of the chord in (0, 1]"
+    elif not 0.0 <= float(cfg.min_inliers) <= 1.0:
+        bad = f"min_inliers={cfg.min_inliers}; a share of the run in [0, 1]"
+    elif not (float(cfg.contrast) >= 0.0 and float(cfg.max_rms) > 0.0):
+        bad = f"contrast={cfg.contrast}, max_rms={cfg.max_rms}; contrast >= 0, max_rms > 0"
+    if bad:
+        raise ValueError(f"refine.bridges.{bad}")
+
+
 def _kernels(length: int, offset: int, n: int, sub: int = 8) -> list[tuple]:
     """For each direction, three normalised kernels (centre, side -, side +) of segments
     ``length`` px long and one px wide, drawn anti-aliased (``sub`` x ``sub`` sub-pixels)."""
