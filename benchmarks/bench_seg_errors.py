@@ -20,7 +20,9 @@ FP (background pixel called object):
   ``leak``      outside every splat: GrabCut grew the mask there by colour
 and, across those, how many FP pixels truly show the support plane (simulator depth: the
 3D point under the pixel lies within ``--plane-tol`` x the OOI radius of the support
-height) -- the pixels the plane check should have caught.
+height) -- the pixels the plane check should have caught; and how many FN pixels lie inside a
+hole of the mask (background it encloses: the spokes of a wheel between its rim and hub, what
+``refine.bridges`` looks for; the truth draws a spoke 1-2 px wide, so most are ``outline``).
 
 Prints pixels and share of the scene's total error (FN + FP) per cause, and writes an
 overlay of the worst views per scene coloured by cause (``--figure``).
@@ -146,6 +148,7 @@ def attribute(scene: str, args) -> dict:
     fp = {c: 0 for c in FP_CAUSES}
     fp_plane = 0
     fn_band2 = fp_band2 = 0
+    fn_holes = 0
     per_view = []
     for v in mviews:
         pred, gt = r.masks[v.key], v.gt_mask
@@ -174,13 +177,16 @@ def attribute(scene: str, args) -> dict:
         sup = support_pixels(v, depth[i], support_z, args.plane_tol * radius)
         fp_plane += int((extra & sup & ~band).sum())
         fn_band2 += int((miss & band2).sum())
+        # object pixels inside a hole of the mask (background it encloses): thin parts across
+        # a hole, a wheel's spokes -- what ``refine.bridges`` looks for
+        fn_holes += int((miss & ndimage.binary_fill_holes(pred)).sum())
         fp_band2 += int((extra & band2).sum())
         iou = r.metrics["per_view"][v.key]["iou"]
         per_view.append((iou, v.key, lab))
     per_view.sort(key=lambda t: t[0])
     return {"scene": scene, "metrics": r.metrics["mean"], "fn": fn, "fp": fp,
             "fp_support_plane": fp_plane, "fn_band2": fn_band2, "fp_band2": fp_band2,
-            "ooi_points": int(len(xyz)), "object_points": int(on_obj.sum()),
+            "fn_holes": fn_holes, "ooi_points": int(len(xyz)), "object_points": int(on_obj.sum()),
             "seconds": dt, "worst": per_view[:args.worst], "views": {v.key: v for v in mviews},
             "masks": r.masks}
 
@@ -237,7 +243,7 @@ def main() -> None:
           f"{'' if args.view_step == 1 else f' (every {args.view_step}th scored)'}; "
           f"share = of the scene's FN+FP pixels")
     head = (["scene", "IoU", "recall", "FN+FP"] + [f"FN {c}" for c in FN_CAUSES]
-            + [f"FP {c}" for c in FP_CAUSES] + ["FP on plane", "in 2px band"])
+            + [f"FP {c}" for c in FP_CAUSES] + ["FP on plane", "FN in holes", "in 2px band"])
     print(" | ".join(head))
     for res in results:
         tot = sum(res["fn"].values()) + sum(res["fp"].values())
@@ -246,6 +252,7 @@ def main() -> None:
         cell += [f"{res['fn'][c]} ({res['fn'][c] / tot:.0%})" for c in FN_CAUSES]
         cell += [f"{res['fp'][c]} ({res['fp'][c] / tot:.0%})" for c in FP_CAUSES]
         cell += [f"{res['fp_support_plane']} ({res['fp_support_plane'] / tot:.0%})",
+                 f"{res['fn_holes']} ({res['fn_holes'] / tot:.0%})",
                  f"{(res['fn_band2'] + res['fp_band2']) / tot:.0%}"]
         print(" | ".join(cell))
         print(f"    OOI points {res['ooi_points']}, on the object {res['object_points']}; "
@@ -256,7 +263,8 @@ def main() -> None:
     if args.json:
         Path(args.json).write_text(json.dumps(
             [{k: res[k] for k in ("scene", "metrics", "fn", "fp", "fp_support_plane",
-                                  "fn_band2", "fp_band2", "ooi_points", "object_points")}
+                                  "fn_band2", "fp_band2", "fn_holes", "ooi_points",
+                                  "object_points")}
              for res in results], indent=1))
 
 
