@@ -939,8 +939,10 @@ def _loose_hull(masks: dict, views: list[View], models: dict, silhouettes: dict,
         reach = int(np.ceil(float(rpx.max()))) + 1
         near = ndimage.binary_dilation(np.pad(cand, reach),
                                        np.ones((2 * reach + 1, 2 * reach + 1), bool))
-        ui = np.rint(u[ok]).astype(np.int64) + reach
-        vi = np.rint(w[ok]).astype(np.int64) + reach
+        # clipped first: a voxel just in front of the camera projects to a huge coordinate,
+        # whose int cast is undefined (numpy warned 'invalid value encountered in cast')
+        ui = np.rint(np.clip(u[ok], -reach - 1, near.shape[1])).astype(np.int64) + reach
+        vi = np.rint(np.clip(w[ok], -reach - 1, near.shape[0])).astype(np.int64) + reach
         inb = (ui >= 0) & (ui < near.shape[1]) & (vi >= 0) & (vi < near.shape[0])
         idx = np.nonzero(ok)[0][inb]
         idx = idx[near[vi[inb], ui[inb]]]
