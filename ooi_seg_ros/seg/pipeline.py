@@ -377,7 +377,8 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
                 full.xyz[noise_in], local, st["flip_scales"], cfg.noise, target, radius,
                 rgb=full.rgb[noise_in] if full.rgb is not None else None,
                 alike=cfg.stability.alike_colour,
-                copies=copies if cfg.stability.copies else None)
+                copies=copies if cfg.stability.copies else None,
+                max_growth=cfg.noise.max_extent_growth if cfg.stability.extent_guard else 0.0)
             cands = st["resolved"]["candidates"]
             chosen = st["resolved"]["chosen_scale"]
             if chosen is not None:
@@ -391,6 +392,10 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
                        else f"the noise stage at eps {chosen} spacings")
                 w += (f"; kept instead the choice of a re-run ({len(cloud)} points, {how}; "
                       f"{why})")
+            elif st["resolved"].get("too_wide"):
+                w += (f"; kept this one (the re-runs' larger choice reaches more than "
+                      f"{cfg.noise.max_extent_growth:g}x as far from the convergence point: "
+                      f"a neighbour joining, the step the noise stage itself refuses)")
             elif any(c[3] is None for c in cands[1:]):
                 w += ("; kept this one (a re-run chose a part of it whose colours match the "
                       "rest)")
