@@ -153,6 +153,32 @@ def test_segment_cli_on_photos_without_poses(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
+def test_segment_cli_threads_1_repeats_itself_on_photos(tmp_path):
+    """`ooi-seg segment PHOTOS --threads 1`: the same bare photos give the same OOI cloud and
+    the same masks, byte for byte. On all cores (the default) pycolmap's SIFT, matching and
+    mapping each change the cloud by a few points from run to run (BENCHMARKS, SfM > Session
+    68), which once took CI's photos test under its bar."""
+    import json
+    from ooi_seg_ros.cli import main as cli_main
+    sim = simulate_capture("aircraft", n_views=30, width=256, height=192, seed=0)
+    img_dir = tmp_path / "photos"
+    img_dir.mkdir()
+    for k, v in enumerate(sim.capture.views):
+        Image.fromarray(v.image).save(img_dir / f"{k:03d}.png")
+    outs = []
+    for r in range(2):
+        out = tmp_path / f"seg{r}"
+        assert cli_main(["segment", str(img_dir), "--out", str(out), "--threads", "1"]) == 0
+        masks = sorted((out / "masks").glob("*.png"))
+        assert len(masks) >= 15
+        info = json.loads((out / "input.json").read_text())
+        assert info["mapping"]["num_threads"] == 1
+        outs.append(((out / "ooi_points.ply").read_bytes(),
+                     [(p.name, p.read_bytes()) for p in masks]))
+    assert outs[0] == outs[1]
+
+
+@pytest.mark.slow
 def test_segment_and_train_honour_downscale_on_a_bag(tmp_path, capsys):
     """`--downscale` reaches every input kind: segment once read bags and folders at full size
     (only COLMAP models were scaled) while `train` reloaded them at 1/downscale from

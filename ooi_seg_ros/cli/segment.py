@@ -31,6 +31,10 @@ def register(subparsers) -> None:
     p.add_argument("--config", help="YAML with SegmentationConfig overrides")
     p.add_argument("--seed", type=int, default=None, help="seed of every random step")
     p.add_argument("--images", help="image folder of a COLMAP sparse model")
+    p.add_argument("--threads", type=int, default=-1,
+                   help="pycolmap threads when photos without poses are mapped (-1 = all "
+                        "cores; 1 = the same photos always give the same model, ~1.5x the "
+                        "time: pycolmap's stages are not repeatable on several threads)")
     add_size_arguments(p)
     p.add_argument("--sim-views", type=int, default=30, help="views of a sim: input")
     p.add_argument("--sim-size", default="160x120", help="WxH of a sim: input")
@@ -181,7 +185,10 @@ def load_input(args) -> tuple:
         # photos without poses: the estimated cameras are kept in OUT/sparse so that
         # `ooi-seg train OUT` finds the poses (the photos themselves carry none)
         keep = None if cap.has_poses else Path(args.out) / "sparse"
-        sfm_cap, cloud, sfm_report = reconstruct(cap, keep_model=keep)
+        from ..sfm.pipeline import SfmConfig
+        sfm_cfg = SfmConfig()
+        sfm_cfg.mapping.num_threads = getattr(args, "threads", -1)
+        sfm_cap, cloud, sfm_report = reconstruct(cap, sfm_cfg, keep_model=keep)
         info["cloud"] = "sfm"
         if sfm_report.get("warning"):
             info.setdefault("warnings", []).append(f"sfm: {sfm_report['warning']}")
@@ -196,6 +203,7 @@ def load_input(args) -> tuple:
                 "mean_reprojection_error_px", "times_s") if k in mapping}
             info["mapping"]["camera_path_max_step_ratio"] = sfm_report.get(
                 "camera_path_max_step_ratio")
+            info["mapping"]["num_threads"] = sfm_cfg.mapping.num_threads
             if missing:
                 info["views_not_registered"] = missing
                 info["warnings"] = info.get("warnings", []) + [
