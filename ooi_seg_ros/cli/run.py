@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from ..core.types import InputError
-from .segment import add_size_arguments, read_at_working_size
+from .segment import add_size_arguments, add_threads_argument, read_at_working_size
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,6 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=("ours", "paper"), default=None,
                    help="segmentation preset (default: ours)")
     add_size_arguments(p)
+    add_threads_argument(p)
     p.add_argument("--iterations", type=int, default=None, help="training iterations")
     p.add_argument("--max-gaussians", type=int, default=None, help="Gaussian budget (MCMC cap)")
     p.add_argument("--skip-train", action="store_true", help="stop after the masks")
@@ -63,6 +64,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"[1/3] SfM over {len(capture.views)} views ...", flush=True)
         t = time.perf_counter()
         cfg = SfmConfig()
+        cfg.mapping.num_threads = args.threads
+        summary["sfm_threads"] = args.threads
         sfm_cap, cloud, report = reconstruct(capture, cfg, work_dir=out / "sfm" / "mapping")
         if not capture.has_poses:
             capture = sfm_cap  # poses estimated by mapping

@@ -31,10 +31,7 @@ def register(subparsers) -> None:
     p.add_argument("--config", help="YAML with SegmentationConfig overrides")
     p.add_argument("--seed", type=int, default=None, help="seed of every random step")
     p.add_argument("--images", help="image folder of a COLMAP sparse model")
-    p.add_argument("--threads", type=int, default=-1,
-                   help="pycolmap threads when photos without poses are mapped (-1 = all "
-                        "cores; 1 = the same photos always give the same model, ~1.5x the "
-                        "time: pycolmap's stages are not repeatable on several threads)")
+    add_threads_argument(p)
     add_size_arguments(p)
     p.add_argument("--sim-views", type=int, default=30, help="views of a sim: input")
     p.add_argument("--sim-size", default="160x120", help="WxH of a sim: input")
@@ -53,6 +50,14 @@ def parse_downscale(text: str) -> Optional[float]:
         raise argparse.ArgumentTypeError(f"{text!r}: give auto or a factor >= 1 (2 = half "
                                          "resolution)")
     return f
+
+
+def add_threads_argument(p: argparse.ArgumentParser) -> None:
+    """``--threads`` (sfm, segment and run): pycolmap's threads for mapping bare photos."""
+    p.add_argument("--threads", type=int, default=-1,
+                   help="pycolmap threads when photos without poses are mapped (-1 = all "
+                        "cores; 1 = the same photos always give the same model, ~1.5x the "
+                        "time: pycolmap's stages are not repeatable on several threads)")
 
 
 def add_size_arguments(p: argparse.ArgumentParser) -> None:

@@ -15,6 +15,8 @@ import shutil
 import time
 from pathlib import Path
 
+from .segment import add_threads_argument
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("sfm", help="build the SfM cloud of a capture",
@@ -33,7 +35,7 @@ def register(subparsers) -> None:
     p.add_argument("--reuse", action="store_true",
                    help="COLMAP dataset with a model: load it instead of recomputing")
     p.add_argument("--config", help="YAML with SfmConfig overrides")
-    p.add_argument("--threads", type=int, default=-1, help="pycolmap threads for mapping")
+    add_threads_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
