@@ -3,8 +3,9 @@
 For each case (the cached captures of ``bench_seg_quality.py``; SfM runs first where a case is
 not cached) this runs the ROI and floor stages of ``ours`` only -- seconds per cloud -- and
 prints every plane the support search fitted (inliers, the convergence point's height over
-it, surround sectors, ``under_interior``) and which one it chose, once per variant, so a
-change to the support search can be checked against many clouds before the costly masks.
+it, surround sectors, ``under_interior``, and ``under_density`` where a variant reads it) and
+which one it chose, once per variant, so a change to the support search can be checked
+against many clouds before the costly masks.
 A case is ``SCENE@SEED[@VIEWS[@SIMSET_JSON[@WxH]]]``.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_support.py \\
@@ -67,7 +68,9 @@ def main() -> None:
             chosen.append(tried[k]["plane"] if k >= 0 else None)
             cells = [f"{t['inliers']} pts h {t['target_height']:.3g}"
                      + (f" sect {t['surround_sectors']} under {t['under_interior']:.3g}"
-                        if "surround_sectors" in t else "") for t in tried]
+                        if "surround_sectors" in t else "")
+                     + (f" density {t['under_density']:.3g}"
+                        if t.get("under_density") is not None else "") for t in tried]
             print(f"{case} {name}: ROI {n}, chose #{k} | " + "; ".join(cells), flush=True)
         same = all(c == chosen[0] for c in chosen)
         print(f"{case}: " + ("the same plane under every variant" if same

@@ -456,6 +456,46 @@ def test_a_plane_through_the_object_with_its_support_visible_under_it_is_no_supp
     assert abs(p["support_plane"][3]) < 0.01  # the bench, not the clutter's tops
 
 
+def test_a_support_over_a_dense_floor_hides_it_per_area_not_per_inlier():
+    """``max_under_density``: a sparse stool top over a dense floor (a wide frame) has a few
+    floor points seen under its edge -- more than ``max_under`` per inlier of the top, yet a
+    small share of the floor's density around it. Per area it still hides the floor; a plane
+    through the object's middle does not."""
+    from ooi_seg_ros.seg.floor import under_density
+    rng = np.random.default_rng(5)
+    floor = np.column_stack([rng.uniform(-2, 2, (16000, 2)), rng.normal(0, 0.004, 16000)])
+    rf = np.hypot(floor[:, 0], floor[:, 1])
+    floor = np.vstack([floor[rf >= 0.41], floor[rf < 0.2][:20]])  # 20 seen under the edge
+    r = 0.4 * np.sqrt(rng.uniform(0, 1, 300))
+    a = rng.uniform(0, 2 * np.pi, 300)
+    top = np.column_stack([r * np.cos(a), r * np.sin(a), 0.5 + rng.normal(0, 0.004, 300)])
+    a = rng.uniform(0, 2 * np.pi, 300)
+    side = np.column_stack([0.41 * np.cos(a), 0.41 * np.sin(a), rng.uniform(0.02, 0.5, 300)])
+    ball = _sphere(800, r=0.15, c=(0, 0, 0.68), seed=5)
+    xyz = np.vstack([floor, top, side, ball])
+    views = _ring_views(target=(0, 0, 0.68))
+    centers = np.array([v.pose.t for v in views])
+    up = -np.mean([v.pose.R[:, 1] for v in views], axis=0)
+    target = np.array([0, 0, 0.68])
+    ratio = under_density(np.array([0, 0, 1.0, -0.5]), top, target, floor)
+    assert ratio is not None and ratio < 0.15  # the ring starts at the stool's edge
+    cfg = FloorConfig(mode="support", support_select="nearest", band_interior=True,
+                      support_min_of="remaining")
+    _, p0 = floor_filter(xyz, cfg, centers, up, target)
+    assert abs(p0["support_plane"][3]) < 0.05  # the top fails max_under: the floor is taken
+    cfg.max_under_density = 0.2
+    keep, p1 = floor_filter(xyz, cfg, centers, up, target)
+    assert abs(abs(p1["support_plane"][3]) - 0.5) < 0.02  # the stool's top
+    assert np.isin(np.arange(len(xyz) - 800, len(xyz)), keep).mean() > 0.95  # the ball stays
+    assert np.isin(np.arange(len(floor), len(floor) + 300), keep).mean() < 0.05
+    # the ground seen under a plane through the object's middle: about its density around
+    bench = np.column_stack([rng.uniform(-1, 1, (4000, 2)), np.zeros(4000)])
+    ring = np.column_stack([rng.uniform(-1, 1, (600, 2)), np.full(600, 0.15)])
+    assert under_density(np.array([0, 0, 1.0, -0.15]), ring, np.array([0, 0, 0.16]),
+                         bench) > 0.5
+    assert under_density(np.array([0, 0, 1.0, -0.5]), top, target, floor[:10]) is None
+
+
 def _wide_stool_scene(seed=3):
     """The stool scene seen through a wide lens: the same stool and ball, but the floor around
     them out to 5 m at the same density (a wider frame or a farther orbit lets in more of the

@@ -90,6 +90,13 @@ class FloorConfig:
     max_under: float = 0.05  # "nearest": at most this many inliers of the farther qualifying
     # planes per inlier lie under the plane's interior (an opaque support hides the floor under
     # its middle; a plane through the object's middle does not hide the ground below it)
+    max_under_density: float = 0.0  # "nearest", > 0: a plane that fails max_under still
+    # qualifies when the farther planes' points under its interior are at most this share of
+    # their density in the ring around it (out to twice the interior's radius; at least
+    # ``under_ring_min`` points there). Per area, not per inlier: a wide frame's floor
+    # outnumbers a small support's top, and its few points seen under a stool's edge then
+    # exceed a per-inlier bound while the floor there is still mostly hidden
+    under_ring_min: int = 20  # max_under_density: fewest ring points the ratio is read from
     band_interior: bool = False  # support mode: measure the skin only under the support's
     # interior (closer to the object's foot than the median inlier), away from its edges
     band_local: int = 0  # support mode, > 0: outside the support's interior the band is also
@@ -230,6 +237,24 @@ def under_interior(plane: np.ndarray, inliers: np.ndarray, target: np.ndarray,
     return float(np.sum(foot_radius(lower, plane, target) < r_in)) / max(len(inliers), 1)
 
 
+def under_density(plane: np.ndarray, inliers: np.ndarray, target: np.ndarray,
+                  lower: np.ndarray, ring_min: int = 20) -> Optional[float]:
+    """Density (per area along ``plane``) of the points of ``lower`` under the interior of
+    ``plane`` (nearer the foot than the median of its ``inliers``, radius r) against their
+    density in the ring from r to 2r around it; None when the ring holds fewer than
+    ``ring_min`` of them (too few to read a ratio from). About 1 under a plane that hides
+    nothing (the ground seen below a plane through an object's middle), near 0 under an
+    opaque support."""
+    if len(lower) == 0:
+        return None
+    r_in = float(np.median(foot_radius(inliers, plane, target)))
+    r = foot_radius(lower, plane, target)
+    ring = int(np.sum((r >= r_in) & (r < 2 * r_in)))
+    if ring < max(ring_min, 1):
+        return None
+    return float(3.0 * np.sum(r < r_in) / ring)  # ring area = 3x the interior's
+
+
 def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
                   cam_up: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, dict]:
     """Indices kept after removing the camera-aware support plane (see module doc)."""
@@ -280,7 +305,12 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
         lower = np.concatenate([q[3] for q in qualified[k + 1:]] or [np.zeros(0, np.int64)])
         hidden = under_interior(plane, xyz[inl_idx], target, xyz[lower])
         tried[t].update(surround_sectors=sectors, under_interior=hidden)
-        if sectors >= cfg.surround_sectors and hidden <= cfg.max_under:
+        hides = hidden <= cfg.max_under
+        if not hides and cfg.max_under_density > 0:
+            ratio = under_density(plane, xyz[inl_idx], target, xyz[lower], cfg.under_ring_min)
+            tried[t]["under_density"] = ratio
+            hides = ratio is not None and ratio <= cfg.max_under_density
+        if sectors >= cfg.surround_sectors and hides:
             nearest = (h_target, plane, res_std)
             break
     if best is None:
