@@ -109,7 +109,7 @@ def preset(method: str) -> dict:
                             "sparse_share": 0.05, "sparse_seeds": False},
                 "floor": {"mode": "support", "support_select": "nearest",
                           "band_interior": True, "support_min_of": "remaining",
-                          "band_local": 4},
+                          "band_local": 4, "max_under_density": 0.1},
                 "noise": {"method": "dbscan", "select": "central", "eps_scale": 1.0,
                           "eps_step": 0.25, "eps_max_scale": 4.0, "settle_change": 0.15,
                           "max_extent_growth": 1.25, "merge_reach_scale": 1.2,
