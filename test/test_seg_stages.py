@@ -1910,6 +1910,36 @@ def test_widening_joins_a_part_held_up_by_the_object_not_a_neighbour_on_the_supp
     assert (k2 >= 1500).sum() == 0 and (k2 < 1500).sum() > 1400 and "stopped_at_scale" in p2
 
 
+def test_central_weight_standing_takes_the_object_at_the_centre_not_a_larger_neighbour():
+    """``central_weight="standing"``: a far orbit frames a larger neighbour on the support
+    (more points within the frame radius) beside the small object the cameras converge on
+    (the tabletop's plant and a box, session 70); weighted by nearness the object is the main
+    cluster. A crown floating over its pot stays the main cluster, as by count."""
+    plant = _cylinder(300, 0.08, 0.0, 0.25, seed=1)
+    box = _cylinder(900, 0.15, 0.0, 0.2, c=(0.5, 0), seed=2)  # on the support, beside
+    up = np.array([0.0, 0.0, 1.0, 0.0])  # the support plane z = 0, normal towards the cameras
+    target = np.array([0.0, 0.0, 0.12])
+    base = dict(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=4.0,
+                settle_change=0.15, max_extent_growth=1.25, part_above=0.25)
+    xyz = np.vstack([plant, box])
+    k0, _ = noise_filter(xyz, NoiseConfig(**base), target, 0.6, up)
+    assert (k0 >= 300).sum() > 850  # by count: the box is the main cluster
+    k1, _ = noise_filter(xyz, NoiseConfig(**base, central_weight="standing"), target, 0.6, up)
+    assert (k1 < 300).sum() > 280 and (k1 >= 300).sum() == 0
+    # a crown over its pot: larger, off the convergence point, floating -- kept as by count
+    pot = _cylinder(300, 0.08, 0.0, 0.2, seed=3)
+    crown = _sphere(1500, r=0.3, c=(0.3, 0, 0.7), seed=4)  # lowest points at z 0.4
+    xyz2 = np.vstack([pot, crown])
+    t2 = np.array([0.0, 0.0, 0.1])
+    kc, _ = noise_filter(xyz2, NoiseConfig(**base), t2, 0.7, up)
+    kl, _ = noise_filter(xyz2, NoiseConfig(**base, central_weight="linear"), t2, 0.7, up)
+    ks, _ = noise_filter(xyz2, NoiseConfig(**base, central_weight="standing"), t2, 0.7, up)
+    assert (kl >= 300).sum() == 0  # by nearness alone the pot, without its crown
+    assert (kc >= 300).sum() > 1400 and np.array_equal(np.sort(kc), np.sort(ks))
+    with pytest.raises(ValueError, match="central_weight"):
+        noise_filter(xyz, NoiseConfig(**base, central_weight="near"), target, 0.7, up)
+
+
 def _box(n: int, lo, hi, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).uniform(lo, hi, size=(n, 3))
 

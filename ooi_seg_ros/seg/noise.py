@@ -145,6 +145,12 @@ class NoiseConfig:
     eps_scale: float = 2.0  # DBSCAN eps in units of the median min_samples-NN distance
     min_samples: int = 8  # DBSCAN core-point neighbourhood size
     select: str = "largest"  # "largest" (paper) | "central" (nearest the convergence point)
+    central_weight: str = "count"  # central: the main cluster holds the most points within
+    # the frame radius of the convergence point ("count"), or the most such points weighted
+    # by 1 - distance / radius ("linear": a neighbour at the frame's edge counts less than
+    # the object the orbit centres on), or "standing": the linear choice where the count's
+    # choice stands beside it on the support (its foot less than part_above of the linear
+    # choice's height above that one's foot), the count's where it floats over it (a crown)
     sor_neighbours: int = 16  # SOR: neighbours per point
     sor_std_ratio: float = 2.0  # SOR: mean-distance threshold in standard deviations
     grow_scale: float = 0.0  # after this stage and the tie-break, add points of its input
@@ -268,7 +274,7 @@ def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float
 
 def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float,
                     up_plane: Optional[np.ndarray], sp: float) -> tuple[np.ndarray, dict]:
-    keep, p = _dbscan_at(xyz, cfg, target, radius, cfg.eps_scale * sp, sp)
+    keep, p = _dbscan_at(xyz, cfg, target, radius, cfg.eps_scale * sp, sp, up_plane)
     p["eps_scale"] = round(cfg.eps_scale, 3)
     settle = cfg.settle_change > 0
 
@@ -285,7 +291,7 @@ def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radiu
     while scale + cfg.eps_step <= cfg.eps_max_scale + 1e-9 and unsettled(p):
         scale += max(cfg.eps_step, 1e-3)
         tried.append(round(scale, 3))
-        k2, p2 = _dbscan_at(xyz, cfg, target, radius, scale * sp, sp)
+        k2, p2 = _dbscan_at(xyz, cfg, target, radius, scale * sp, sp, up_plane)
         p2["eps_scale"] = round(scale, 3)
         if len(k2) == 0:
             p["stopped_at_scale"] = round(scale, 3)
@@ -422,8 +428,23 @@ def dbscan_labels(xyz: np.ndarray, eps: float, min_points: int,
     return lab[inv].astype(np.int64), "grid"
 
 
+def _beside(xyz: np.ndarray, other: np.ndarray, central: np.ndarray,
+            up_plane: Optional[np.ndarray], share: float) -> bool:
+    """Whether the points ``other`` stand beside the points ``central`` on the support plane
+    ``up_plane`` rather than float over them: ``other``'s foot (2% quantile of height) lies
+    less than ``share`` of ``central``'s own height (2-98%) above ``central``'s foot."""
+    if up_plane is None or share <= 0:
+        return False
+    plane = np.asarray(up_plane, float)
+    hc = xyz[central] @ plane[:3] + plane[3]
+    lo, hi = np.quantile(hc, [0.02, 0.98])
+    ho = float(np.quantile(xyz[other] @ plane[:3] + plane[3], 0.02))
+    return bool(hi > lo and ho - lo < share * (hi - lo))
+
+
 def _dbscan_at(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float,
-               eps: float, sp: float) -> tuple[np.ndarray, dict]:
+               eps: float, sp: float, up_plane: Optional[np.ndarray] = None
+               ) -> tuple[np.ndarray, dict]:
     """Indices of the cluster(s) DBSCAN at ``eps`` selects (``sp`` = the cloud's spacing),
     and its parameters."""
     labels, path = dbscan_labels(xyz, eps, cfg.min_samples, cfg.grid_above_pairs,
@@ -435,7 +456,17 @@ def _dbscan_at(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: fl
         d = np.linalg.norm(xyz - target, axis=1)
         lab = labels[labels >= 0]  # cluster ids are 0..C-1 (per-cluster sums by bincount)
         dl = d[labels >= 0]
+        if cfg.central_weight not in ("count", "linear", "standing"):
+            raise ValueError(f"noise.central_weight={cfg.central_weight!r}; use count, "
+                             "linear or standing")
         near = np.bincount(lab, weights=dl < radius, minlength=len(ids))[ids]
+        if cfg.central_weight != "count":
+            lin = np.bincount(lab, weights=np.clip(1.0 - dl / max(radius, 1e-12), 0.0, None),
+                              minlength=len(ids))[ids]
+            a, b = int(np.argmax(near)), int(np.argmax(lin))
+            if a != b and near.max() > 0 and (cfg.central_weight == "linear" or _beside(
+                    xyz, labels == ids[a], labels == ids[b], up_plane, cfg.part_above)):
+                near = lin
         if near.max() == 0:
             dmin = np.full(len(ids), np.inf)
             np.minimum.at(dmin, np.searchsorted(ids, lab), dl)

@@ -378,7 +378,8 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
                 rgb=full.rgb[noise_in] if full.rgb is not None else None,
                 alike=cfg.stability.alike_colour,
                 copies=copies if cfg.stability.copies else None,
-                max_growth=cfg.noise.max_extent_growth if cfg.stability.extent_guard else 0.0)
+                max_growth=cfg.noise.max_extent_growth if cfg.stability.extent_guard else 0.0,
+                up_plane=(params.get("floor") or {}).get("support_plane"))
             cands = st["resolved"]["candidates"]
             chosen = st["resolved"]["chosen_scale"]
             if chosen is not None:

@@ -199,8 +199,8 @@ def colour_ratio(core: np.ndarray, extra: np.ndarray) -> float:
 def centred_alternative(xyz: np.ndarray, chosen: np.ndarray, scales: list,
                         noise_cfg: NoiseConfig, target: np.ndarray, radius: float,
                         rgb: Optional[np.ndarray] = None, alike: float = 0.0,
-                        copies: Optional[list] = None, max_growth: float = 0.0
-                        ) -> tuple[np.ndarray, dict]:
+                        copies: Optional[list] = None, max_growth: float = 0.0,
+                        up_plane: Optional[np.ndarray] = None) -> tuple[np.ndarray, dict]:
     """The tie-break ``resolve`` applies after flips: of the noise stage's choice
     ``chosen`` (indices into its input ``xyz``) and the sets its DBSCAN selection gives on
     the same input at the eps scales the flipped copies stopped at, the one whose box is best
@@ -227,13 +227,15 @@ def centred_alternative(xyz: np.ndarray, chosen: np.ndarray, scales: list,
     cloud of the same photos the whole-noise-input set is off-centre 0.025 against the
     plant's 0.072, with 2.4x its extent and purity 0.58).
 
+    ``up_plane``: the support plane, for the noise stage's ``central_weight`` "standing".
+
     Returns (indices, {"candidates": [[label (the eps scale, "copies", or None for
     ``chosen``), points, off-centre, label of the candidate it is a fragment of, or "-"]],
     "chosen_scale": the chosen candidate's label})."""
     sp = spacing(xyz, noise_cfg.min_samples)
     sets: list = [(None, np.asarray(chosen, np.int64))]
     for sc in sorted(set(scales)):
-        k, _ = _dbscan_at(xyz, noise_cfg, target, radius, sc * sp, sp)
+        k, _ = _dbscan_at(xyz, noise_cfg, target, radius, sc * sp, sp, up_plane)
         if len(k) >= 4:
             sets.append((sc, np.asarray(k, np.int64)))
     for k in copies or []:
