@@ -5,8 +5,18 @@
 (improved) keeps the cluster with most points near the cameras' convergence point, i.e. the
 cluster the orbit is looking at, and also merges clusters that lie (mostly) within that
 cluster's own reach from the convergence point (parts of one object split by a sparse gap).
-``iterations`` > 1 repeats the removal until fewer than ``stop_fraction`` of the points are
-removed in a round.
+"Most points near" is a count within the frame radius; a far orbit or a wide lens frames
+the object's neighbours too, and a larger neighbour then outnumbers it (the tabletop's
+plant, 107 points at the convergence point, against a box of 215 half a frame radius off:
+IoU 0.54-0.62 on the far rings and through a 90 deg lens at 320x240). ``central_weight``
+"standing" (``ours``) weights each point by 1 - distance / radius instead where the two
+rules disagree and the count's cluster stands beside the other on the support plane (its
+foot less than ``part_above`` of the other's height above the other's foot): the object the
+orbit centres on. Where the count's cluster floats over the nearer one -- a bonsai's crown
+over its pot, both split by a sparse trunk -- the count stands ("linear", weighting
+everywhere, took the pot alone on one 72-photo subset of the real bonsai: 2,394 -> 589
+points). ``iterations`` > 1 repeats the removal until fewer than ``stop_fraction`` of the
+points are removed in a round.
 
 ``eps_max_scale`` > ``eps_scale`` (improved) widens eps in steps of ``eps_step`` spacings
 while the selected set stays as compact as at the first eps (its 98% extent around the

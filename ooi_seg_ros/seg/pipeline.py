@@ -114,7 +114,7 @@ def preset(method: str) -> dict:
                           "eps_step": 0.25, "eps_max_scale": 4.0, "settle_change": 0.15,
                           "max_extent_growth": 1.25, "merge_reach_scale": 1.2,
                           "part_above": 0.25, "retreat": True,
-                          "widen_unclustered": True},
+                          "widen_unclustered": True, "central_weight": "standing"},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
                           "splat_scale": 0.6, "hull_consistency": False,
