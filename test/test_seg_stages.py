@@ -1940,6 +1940,28 @@ def test_central_weight_standing_takes_the_object_at_the_centre_not_a_larger_nei
         noise_filter(xyz, NoiseConfig(**base, central_weight="near"), target, 0.7, up)
 
 
+def test_rebase_on_switch_takes_the_new_main_clusters_extent_as_the_reference():
+    """``rebase_on_switch``: a sparse object beside a dense neighbour is in fragments at the
+    first eps, so the neighbour is the main cluster and the set settles on both (the object's
+    fragments lie within the neighbour's reach); a wider eps makes the object one cluster that
+    outweighs the neighbour by nearness and the set switches to it. The reference extent was
+    the settled set's, so when the neighbour chains to the object at a wider eps still, its
+    jump passed (the tabletop's far seed 1: plant and box, IoU 0.55). Rebased, it is refused."""
+    plant = _cylinder(450, 0.18, 0.0, 0.3, seed=1)  # sparse: fragments at 1-1.5 spacings
+    box = _cylinder(900, 0.12, 0.0, 0.2, c=(0.39, 0), seed=2)  # dense, 0.09 from the plant
+    xyz = np.vstack([plant, box])
+    up = np.array([0.0, 0.0, 1.0, 0.0])
+    target = np.array([0.0, 0.0, 0.12])
+    base = dict(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=4.0,
+                settle_change=0.15, max_extent_growth=1.25, part_above=0.25,
+                central_weight="standing", widen_unclustered=True)
+    k0, p0 = noise_filter(xyz, NoiseConfig(**base), target, 0.6, up)
+    assert len(k0) == len(xyz) and "rebased_at" not in p0  # the box chained back in
+    k1, p1 = noise_filter(xyz, NoiseConfig(**base, rebase_on_switch=True), target, 0.6, up)
+    assert (k1 < 450).sum() == 450 and (k1 >= 450).sum() == 0
+    assert p1["rebased_at"] and p1["stopped_at_scale"] > p1["rebased_at"][0]
+
+
 def _box(n: int, lo, hi, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).uniform(lo, hi, size=(n, 3))
 

@@ -213,6 +213,9 @@ class NoiseConfig:
     # one cluster is left but at least settle_change of the points are in none (DBSCAN's
     # noise): a sparse cloud's parts (the stool's leaves) are not yet in the set, which has
     # not settled. False: only while DBSCAN finds more than one cluster
+    rebase_on_switch: bool = False  # with settle_change: after the set settled, a step that
+    # leaves out at least settle_change of its points (the main cluster changed) makes the
+    # new set's extent the reference; False: the settled set's extent stays the reference
     iterations: int = 1  # repeat the removal (stops early, see stop_fraction)
     stop_fraction: float = 0.01  # stop iterating when a round removes fewer than this fraction
 
@@ -343,7 +346,15 @@ def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radiu
             e0 = e2
             p2["settled_at_scale"] = round(scale, 3)
         elif e0 is not None:
-            for key in ("settled_at_scale", "parts_joined_at", "parts_held_up_at"):
+            if (cfg.rebase_on_switch
+                    and len(np.setdiff1d(keep, k2)) >= cfg.settle_change * len(keep)):
+                # the step left out much of the settled set: the main cluster changed (a
+                # nearer cluster now outweighs a neighbour that outnumbered it); the extent
+                # the set settled at was the neighbour's, so the new set's is the reference
+                e0 = e2
+                p2["rebased_at"] = p.get("rebased_at", []) + [round(scale, 3)]
+            for key in ("settled_at_scale", "parts_joined_at", "parts_held_up_at",
+                        "rebased_at"):
                 if key in p and key not in p2:
                     p2[key] = p[key]
         keep, p = k2, p2
