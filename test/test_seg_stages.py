@@ -1940,6 +1940,33 @@ def test_central_weight_standing_takes_the_object_at_the_centre_not_a_larger_nei
         noise_filter(xyz, NoiseConfig(**base, central_weight="near"), target, 0.7, up)
 
 
+def test_central_inner_takes_the_object_wholly_nearer_than_a_neighbour_standing_beside():
+    """``central_inner``: a neighbour in the outer frame can outweigh the object even by
+    nearness (the tabletop's far seed 5: a box of 272 points, nearest 0.42 frame radius, over
+    a plant of 125 within 0.09-0.3) and the object then joins it by its reach. A cluster that
+    lies wholly nearer the convergence point than the main one comes, stands beside it and
+    holds at least ``part_min_points`` as many points is the main cluster. A crown floating
+    over its pot keeps the pot from taking over (not beside)."""
+    plant = _cylinder(300, 0.08, 0.0, 0.25, seed=1)
+    box = _cylinder(1100, 0.1, 0.0, 0.2, c=(0.38, 0), seed=2)  # on the support, beside
+    xyz = np.vstack([plant, box])
+    up = np.array([0.0, 0.0, 1.0, 0.0])
+    target = np.array([0.0, 0.0, 0.12])
+    base = dict(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=4.0,
+                settle_change=0.15, max_extent_growth=1.25, part_above=0.25,
+                central_weight="standing", merge_reach_scale=1.2)
+    k0, _ = noise_filter(xyz, NoiseConfig(**base), target, 0.6, up)
+    assert len(k0) == len(xyz)  # the box is the main cluster, the plant within its reach
+    k1, p1 = noise_filter(xyz, NoiseConfig(**base, central_inner=True), target, 0.6, up)
+    assert (k1 < 300).sum() == 300 and (k1 >= 300).sum() == 0 and p1["main_share"] == 1.0
+    pot = _cylinder(300, 0.08, 0.0, 0.2, seed=3)
+    crown = _sphere(1500, r=0.3, c=(0.3, 0, 0.7), seed=4)  # lowest points at z 0.4
+    xyz2 = np.vstack([pot, crown])
+    t2 = np.array([0.0, 0.0, 0.1])
+    k2, _ = noise_filter(xyz2, NoiseConfig(**base, central_inner=True), t2, 0.7, up)
+    assert len(k2) == len(xyz2)
+
+
 def test_rebase_on_switch_takes_the_new_main_clusters_extent_as_the_reference():
     """``rebase_on_switch``: a sparse object beside a dense neighbour is in fragments at the
     first eps, so the neighbour is the main cluster and the set settles on both (the object's

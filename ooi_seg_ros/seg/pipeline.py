@@ -115,7 +115,7 @@ def preset(method: str) -> dict:
                           "max_extent_growth": 1.25, "merge_reach_scale": 1.2,
                           "part_above": 0.25, "retreat": True,
                           "widen_unclustered": True, "central_weight": "standing",
-                          "rebase_on_switch": True},
+                          "rebase_on_switch": True, "central_inner": True},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
                           "splat_scale": 0.6, "hull_consistency": False,
