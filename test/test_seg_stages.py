@@ -1967,6 +1967,32 @@ def test_central_inner_takes_the_object_wholly_nearer_than_a_neighbour_standing_
     assert len(k2) == len(xyz2)
 
 
+def test_lookahead_takes_a_crown_whose_first_crumbs_were_refused_but_not_a_neighbour():
+    """``lookahead``: a sparse crown can first join in crumbs (a trunk's few points) that move
+    the extent past ``max_extent_growth`` but are too few to count as held up, which stopped
+    the widening on the pot alone (the real bonsai with 37 of its photos: 177 of 466 points,
+    7 stability flips). Judged against the same kept set, a wider eps that adds the crown is
+    a part and is taken; a neighbour on the support beside the pot still is not."""
+    up = np.array([0.0, 0.0, 1.0, 0.0])
+    target = np.array([0.0, 0.0, 0.1])
+    base = dict(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=4.0,
+                settle_change=0.15, max_extent_growth=1.25, part_above=0.25,
+                central_weight="standing", merge_reach_scale=1.2, widen_unclustered=True)
+    pot = _cylinder(600, 0.1, 0.0, 0.2, seed=1)
+    crumbs = _cylinder(20, 0.03, 0.24, 0.30, c=(0.08, 0), seed=2)  # a trunk's first points
+    crown = _sphere(600, r=0.25, c=(0.2, 0, 0.63), seed=3)  # lowest points at z 0.38
+    xyz = np.vstack([pot, crumbs, crown])
+    k0, p0 = noise_filter(xyz, NoiseConfig(**base), target, 0.7, up)
+    assert len(k0) == 600 and "stopped_at_scale" in p0  # the pot alone
+    k1, p1 = noise_filter(xyz, NoiseConfig(**base, lookahead=True), target, 0.7, up)
+    assert len(k1) == len(xyz) and p1["looked_ahead_from"] == [p0["stopped_at_scale"]]
+    assert p1["parts_held_up_at"]
+    box = _cylinder(600, 0.12, 0.0, 0.2, c=(0.3, 0), seed=4)  # on the support, beside
+    k2, p2 = noise_filter(np.vstack([pot, crumbs, box]), NoiseConfig(**base, lookahead=True),
+                          target, 0.7, up)
+    assert len(k2) == 600 and "looked_ahead_from" not in p2
+
+
 def test_rebase_on_switch_takes_the_new_main_clusters_extent_as_the_reference():
     """``rebase_on_switch``: a sparse object beside a dense neighbour is in fragments at the
     first eps, so the neighbour is the main cluster and the set settles on both (the object's

@@ -228,6 +228,10 @@ class NoiseConfig:
     # (2%), that stands beside it on the support and holds at least part_min_points of its
     # points, is the main cluster instead (the object at the centre of a far orbit's frames,
     # the main one a larger neighbour in the outer frame)
+    lookahead: bool = False  # with settle_change and part_above: a step refused as a jump
+    # is replaced by the first wider eps (up to eps_max_scale) whose additions, against the
+    # same kept set, are held up by it (a crown after its trunk's crumbs); the widening goes
+    # on from there. False: the first refused step stops it
     rebase_on_switch: bool = False  # with settle_change: after the set settled, a step that
     # leaves out at least settle_change of its points (the main cluster changed) makes the
     # new set's extent the reference; False: the settled set's extent stays the reference
@@ -293,6 +297,17 @@ def _held_up(xyz: np.ndarray, keep: np.ndarray, grown: np.ndarray,
     return bool(held >= 0.5 * len(added) and held >= min_points * len(keep))
 
 
+def _judge_jump(xyz: np.ndarray, keep: np.ndarray, k2: np.ndarray, target: np.ndarray,
+                up_plane: Optional[np.ndarray], cfg: NoiseConfig, settle: bool, eps: float
+                ) -> tuple[bool, bool]:
+    """(centres, held): whether the step from ``keep`` to ``k2`` brings the set's centre
+    nearer the convergence point, or what it adds is held up by the set (see module)."""
+    centres = settle and _off_centre(xyz[k2], target) < _off_centre(xyz[keep], target)
+    held = (not centres and settle
+            and _held_up(xyz, keep, k2, up_plane, cfg.part_above, eps, cfg.part_min_points))
+    return bool(centres), bool(held)
+
+
 def _dbscan(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radius: float,
             up_plane: Optional[np.ndarray] = None) -> tuple[np.ndarray, dict]:
     """DBSCAN selection, with eps widened while the selection stays compact (see module)."""
@@ -326,10 +341,25 @@ def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radiu
             break
         e2 = _extent(xyz[k2], target)
         if e0 is not None and e2 > cfg.max_extent_growth * e0:
-            centres = settle and _off_centre(xyz[k2], target) < _off_centre(xyz[keep], target)
-            held = (not centres and settle
-                    and _held_up(xyz, keep, k2, up_plane, cfg.part_above, scale * sp,
-                                 cfg.part_min_points))
+            centres, held = _judge_jump(xyz, keep, k2, target, up_plane, cfg, settle, scale * sp)
+            ahead = scale
+            while (not (centres or held) and cfg.lookahead and settle
+                   and ahead + cfg.eps_step <= cfg.eps_max_scale + 1e-9):
+                # a part of a sparse object can join in crumbs too few to count as held up
+                # (a trunk's points before the crown's); a wider eps may bring the rest: take
+                # that step if what it adds is held up by the set, else stop here as before
+                # (a step that only centres the set is not looked ahead for)
+                ahead += max(cfg.eps_step, 1e-3)
+                k3, p3 = _dbscan_at(xyz, cfg, target, radius, ahead * sp, sp, up_plane)
+                if len(k3) == 0:
+                    break
+                if _held_up(xyz, keep, k3, up_plane, cfg.part_above, ahead * sp,
+                            cfg.part_min_points):  # held up, not merely centring
+                    tried.append(round(ahead, 3))
+                    p3["eps_scale"] = round(ahead, 3)
+                    p3["looked_ahead_from"] = p.get("looked_ahead_from", []) + [round(scale, 3)]
+                    scale, k2, p2, centres, held = ahead, k3, p3, False, True
+                    e2 = _extent(xyz[k2], target)
             if not (centres or held):
                 p["stopped_at_scale"] = round(scale, 3)
                 break
@@ -369,7 +399,7 @@ def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radiu
                 e0 = e2
                 p2["rebased_at"] = p.get("rebased_at", []) + [round(scale, 3)]
             for key in ("settled_at_scale", "parts_joined_at", "parts_held_up_at",
-                        "rebased_at"):
+                        "rebased_at", "looked_ahead_from"):
                 if key in p and key not in p2:
                     p2[key] = p[key]
         keep, p = k2, p2
