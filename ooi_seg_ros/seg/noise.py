@@ -350,6 +350,7 @@ def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radiu
             centres, held = _judge_jump(xyz, keep, k2, target, up_plane, cfg, settle, scale * sp)
             ahead = scale
             while (not (centres or held) and cfg.lookahead and settle
+                   and up_plane is not None and cfg.part_above > 0
                    and ahead + cfg.eps_step <= cfg.eps_max_scale + 1e-9):
                 # a part of a sparse object can join in crumbs too few to count as held up
                 # (a trunk's points before the crown's); a wider eps may bring the rest: take
