@@ -1993,6 +1993,26 @@ def test_lookahead_takes_a_crown_whose_first_crumbs_were_refused_but_not_a_neigh
     assert len(k2) == 600 and "looked_ahead_from" not in p2
 
 
+def test_centre_absolute_refuses_a_neighbour_that_only_grows_the_box_around_the_target():
+    """``centre_absolute``: a jump in extent passes as a part when it brings the set's box
+    centre nearer the convergence point -- relative to the box's half-diagonal. A neighbour
+    beside a well-centred object doubles the box, so the relative offset can fall while the
+    centre moves away (the toy car's far seed 3: 0.020 -> 0.034 m off, 0.132 -> 0.117
+    relative; a can chained in, IoU 0.72). Asked in metres too, that step is refused."""
+    up = np.array([0.0, 0.0, 1.0, 0.0])
+    target = np.array([0.0, 0.0, 0.05])
+    base = dict(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=4.0,
+                settle_change=0.15, max_extent_growth=1.25, part_above=0.25,
+                central_weight="standing", merge_reach_scale=1.2, widen_unclustered=True)
+    car = _cylinder(800, 0.12, 0.0, 0.1, c=(-0.04, 0), seed=1)  # 4 cm off the target
+    can = _cylinder(400, 0.06, 0.0, 0.1, c=(0.18, 0), seed=2)  # 4 cm beside it
+    xyz = np.vstack([car, can])
+    k0, p0 = noise_filter(xyz, NoiseConfig(**base), target, 0.8, up)
+    assert (k0 >= 800).sum() == 400 and p0["parts_joined_at"]  # taken as centring
+    k1, p1 = noise_filter(xyz, NoiseConfig(**base, centre_absolute=True), target, 0.8, up)
+    assert (k1 >= 800).sum() == 0 and (k1 < 800).sum() == 800 and "stopped_at_scale" in p1
+
+
 def test_rebase_on_switch_takes_the_new_main_clusters_extent_as_the_reference():
     """``rebase_on_switch``: a sparse object beside a dense neighbour is in fragments at the
     first eps, so the neighbour is the main cluster and the set settles on both (the object's
