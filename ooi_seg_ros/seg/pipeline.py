@@ -116,7 +116,7 @@ def preset(method: str) -> dict:
                           "part_above": 0.25, "retreat": True,
                           "widen_unclustered": True, "central_weight": "standing",
                           "rebase_on_switch": True, "central_inner": True,
-                          "lookahead": True},
+                          "lookahead": True, "centre_absolute": True},
                 "mesh": {"method": "poisson"},
                 "masks": {"mode": "points", "closing_kernel": 5, "fill_holes": True,
                           "splat_scale": 0.6, "hull_consistency": False,
