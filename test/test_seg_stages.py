@@ -1991,9 +1991,13 @@ def test_lookahead_takes_a_crown_whose_first_crumbs_were_refused_but_not_a_neigh
     assert len(k1) == len(xyz) and p1["looked_ahead_from"] == [p0["stopped_at_scale"]]
     assert p1["parts_held_up_at"]
     box = _cylinder(600, 0.12, 0.0, 0.2, c=(0.3, 0), seed=4)  # on the support, beside
-    k2, p2 = noise_filter(np.vstack([pot, crumbs, box]), NoiseConfig(**base, lookahead=True),
-                          target, 0.7, up)
-    assert len(k2) == 600 and "looked_ahead_from" not in p2
+    for extra in ({}, {"centre_absolute": True}):  # with it, centring steps are looked for too
+        k2, p2 = noise_filter(np.vstack([pot, crumbs, box]),
+                              NoiseConfig(**base, lookahead=True, **extra), target, 0.7, up)
+        assert len(k2) == 600 and "looked_ahead_from" not in p2
+    k3, _ = noise_filter(xyz, NoiseConfig(**base, lookahead=True, centre_absolute=True),
+                         target, 0.7, up)
+    assert len(k3) == len(xyz)
 
 
 def test_centre_absolute_refuses_a_neighbour_that_only_grows_the_box_around_the_target():
