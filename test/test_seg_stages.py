@@ -2023,6 +2023,30 @@ def test_centre_absolute_refuses_a_neighbour_that_only_grows_the_box_around_the_
     assert (k1 >= 800).sum() == 0 and (k1 < 800).sum() == 800 and "stopped_at_scale" in p1
 
 
+def test_retreat_without_centring_keeps_the_other_half_when_groups_lie_apart():
+    """``retreat_centring``: the retreat also went back before a jump taken after settling
+    because it centred the set -- made for a neighbour that centred the set a little (the
+    sparse toy car of seed 3 at 8 views), which ``centre_absolute`` now refuses at the step
+    itself. Left on, it undid the bicycle's other half when a few of the bicycle's own groups
+    stayed apart at the widest eps (seed 6 at 640x360: 17% apart, half the bicycle kept, IoU
+    0.54). Off, the half that centres the set stays and the groups apart are still warned."""
+    from ooi_seg_ros.seg.density import spacing
+    cfg = NoiseConfig(select="central", eps_scale=1.0, eps_step=0.25, eps_max_scale=4.0,
+                      settle_change=0.15, merge_reach_scale=1.2, retreat=True,
+                      centre_absolute=True)
+    for seed in (1, 2):
+        a = _sphere(500, r=0.1, c=(-0.06, 0, 0), seed=seed)
+        b = _sphere(500, r=0.1, c=(0.14 + 1.8 * spacing(a, 8), 0, 0), seed=seed + 5)
+        groups = [_sphere(40, r=0.02, c=(0.04, y, 0), seed=seed + 9 + i)  # apart, in reach
+                  for i, y in enumerate((0.25, -0.25))]
+        xyz = np.vstack([a, b] + groups)
+        k0, p0 = noise_filter(xyz, cfg, np.zeros(3), 0.1)
+        assert len(k0) == 500 and (k0 < 500).all() and p0["retreated_from_scale"] == 2.0
+        k1, p1 = noise_filter(xyz, replace(cfg, retreat_centring=False), np.zeros(3), 0.1)
+        assert len(k1) == len(xyz) and p1["parts_joined_at"] == [2.0]
+        assert "retreated_from_scale" not in p1 and "group(s) apart" in p1["warning"]
+
+
 def test_rebase_on_switch_takes_the_new_main_clusters_extent_as_the_reference():
     """``rebase_on_switch``: a sparse object beside a dense neighbour is in fragments at the
     first eps, so the neighbour is the main cluster and the set settles on both (the object's

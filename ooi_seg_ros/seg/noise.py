@@ -125,6 +125,19 @@ a correction, and adds no constant of its own. On the 200 depth-proxy clouds of
 ``bench_noise_warning.py`` it makes 11 of the 14 impure ones pure (87-100% of the object's
 points kept) and changes no other cloud; toy cars 1 and 5 at 6 views (the neighbour chains
 at the first eps or with less than ``max_extent_growth``) stay impure and warned.
+
+``retreat_centring`` (off in ``ours``, session 72) decides whether the jump taken because it
+centred the set is such a step. It was made for the sparse toy car of seed 3, whose clutter
+centred the set "a little" -- the case ``centre_absolute`` now refuses at the step itself
+(the depth-proxy toy car of seed 3 at 8 views: with ``centre_absolute`` off the retreat is
+what keeps it pure; with it on the step is refused and the retreat has nothing to do). Left
+on beside ``centre_absolute`` it undid the other half of a sparse bicycle when some of the
+bicycle's own groups stayed apart at the widest eps (seed 6 at 640x360, SfM run of session
+71: the look-ahead took the whole bicycle at 3 spacings, 17% of it ended apart, and the
+retreat went back to the half, IoU 0.54). Off, that cloud keeps the whole bicycle (0.919,
+warned for the groups apart) and none of the 200 depth-proxy clouds, the 101 other cached
+SfM clouds or the 24 real-bonsai subsets changes.
+
 ``widen_unclustered`` (on in ``ours``) starts and continues the widening while DBSCAN finds
 one cluster but leaves at least ``settle_change`` of the points in none. "More than one
 cluster" alone missed a sparse cloud whose thin parts are all DBSCAN noise at one spacing:
@@ -233,6 +246,9 @@ class NoiseConfig:
     # set off the convergence point (and held nothing up), or a later jump was taken as a
     # part because it centred the set, keep the set from before the first such step (the
     # object before the neighbour chained to it); the warning says so
+    retreat_centring: bool = True  # with retreat: a jump after settling taken as a part
+    # because it centred the set is a step the retreat may go back before. False: only the
+    # pre-settle off-centring step is (see module)
     widen_unclustered: bool = False  # with settle_change: the widening also goes on while
     # one cluster is left but at least settle_change of the points are in none (DBSCAN's
     # noise): a sparse cloud's parts (the stool's leaves) are not yet in the set, which has
@@ -412,7 +428,7 @@ def _dbscan_widened(xyz: np.ndarray, cfg: NoiseConfig, target: np.ndarray, radiu
             # (the other half of the object the orbit frames, not a neighbour beside it), or
             # it floats above the set's foot (held up by the object; a neighbour stands on
             # the support)
-            if centres and suspect is None and cfg.retreat:
+            if centres and suspect is None and cfg.retreat and cfg.retreat_centring:
                 # taken as a part because it centres the set; if the widening ends with the
                 # warning's signs, this jump is where a neighbour may have joined
                 suspect = (round(scale, 3), keep, dict(p), e2 / max(e0, 1e-12))
