@@ -73,7 +73,7 @@ def main(argv=None) -> int:
         variants.append((name, json.loads(js)))
     print(f"{'views':>5} {'first':>5} {'variant':>10} {'density':>7} {'noise':>6} {'OOI':>6} "
           f"{'settled':>7} {'stopped':>7} {'joined':>12} {'held up':>8} {'flips':>5} "
-          f"{'copies (points)':>18} {'s':>5}")
+          f"{'copies (points)':>18} {'s':>5} warnings")
     with tempfile.TemporaryDirectory() as tmp:
         for step, off in [(st, o) for st in args.steps for o in args.offsets if o < st]:
             d = Path(tmp) / f"every{step}_{off}"
@@ -94,7 +94,8 @@ def main(argv=None) -> int:
                       f"{str(p.get('stopped_at_scale', '-')):>7} "
                       f"{str(p.get('parts_joined_at', '-')):>12} "
                       f"{str(p.get('parts_held_up_at', '-')):>8} {st.get('flips', 0):>5} "
-                      f"{f'{min(sizes)}-{max(sizes)}':>18} {dt:>5.1f}", flush=True)
+                      f"{f'{min(sizes)}-{max(sizes)}':>18} {dt:>5.1f} "
+                      f"{'; '.join(w.split(':')[0] for w in r.warnings) or '-'}", flush=True)
     return 0
 
 

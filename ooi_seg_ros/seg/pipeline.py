@@ -62,7 +62,7 @@ from .noise import NoiseConfig, grow_selection, noise_filter
 from .photo import background_planes
 from .refine import RefineConfig, refine_masks
 from .residual import ResidualConfig, colour_mismatch, colour_vote, residual_filter
-from .roi import RoiConfig, frame_radius, roi_filter
+from .roi import RoiConfig, frame_radius, framing_warning, roi_filter
 from .stability import (StabilityConfig, centred_alternative, copies_choice,
                         stability_check, stability_warning)
 
@@ -490,6 +490,9 @@ def segment(capture: Capture, cloud: SfmCloud, config: Optional[SegmentationConf
         counts["residual"] = int(len(cloud))
         timings["residual"] = time.perf_counter() - t0
         stage_clouds["residual"] = (cloud.xyz, cloud.rgb)
+    framing = framing_warning(cloud.xyz, views, cfg.roi) if cfg.roi.enabled else None
+    if framing:
+        warnings.append(f"roi: {framing}")
     if len(cloud) < cfg.min_ooi_points:
         warnings.append(f"only {len(cloud)} SfM points form the OOI (fewer than "
                         f"{cfg.min_ooi_points}): masks drawn from so few points are unreliable "
