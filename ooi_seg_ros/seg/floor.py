@@ -36,7 +36,12 @@ the ground under them too), so the per-inlier rule stays first. ``band_interior`
 the skin only under the support's interior (points nearer the foot than the median inlier):
 a table's apron or a cloth's sides hang below the support's edge, and read as skin they made
 the band as tall as the object's pot. ``band_tail`` (off) instead ends the skin where the
-depth histogram below the plane stops decaying.
+depth histogram below the plane stops decaying. ``band_gap`` (session 72): where the depths
+under the interior are fewer than 1 / (1 - ``band_mirror_quantile``) (100 for the 99%
+quantile), that quantile is the deepest point or two, and one SfM stray under an opaque top
+sets the band -- the stool through a 90 deg lens at 544x408, seed 2: 61 depths, two strays at
+0.14 and 0.22 m under a 1.6 cm skin, band 0.169 m, the whole pot removed (IoU 0.66). There
+the depths end at the first gap between consecutive depths wider than the fit threshold.
 
 ``band_local`` (4 in ``ours``) measures the skin again, the same way, beyond the interior: in
 that many rings of equal inlier counts from the median inlier radius outwards, each ring's
@@ -108,6 +113,12 @@ class FloorConfig:
     band_local: int = 0  # support mode, > 0: outside the support's interior the band is also
     # measured locally, in this many rings of equal inlier counts around the object's foot
     # (the skin of a far floor seen at a shallow angle is thicker than under the object)
+    band_gap: bool = False  # support mode: where the depths below the plane are too few for
+    # band_mirror_quantile to rest on more than the deepest one (under 1 / (1 - quantile)),
+    # they end at the first gap wider than the fit threshold between consecutive depths;
+    # deeper points under an opaque support's interior are SfM strays (the stool through a
+    # 90 deg lens at 544x408, seed 2: 2 of 61 depths at 0.14-0.22 m set the 99% quantile to
+    # 0.169 m, 10x the skin, and the band took the whole pot)
     band_tail: bool = False  # support mode: the skin ends where the depths below the plane
     # fall to the level of their outer half (a table's or cloth's sides hanging below the
     # support, which the quantile alone reads as skin up to the window's edge)
@@ -334,6 +345,13 @@ def support_floor(xyz: np.ndarray, cfg: FloorConfig, cam_centers: np.ndarray,
             # its edge, and an opaque support hides everything under its middle but its skin
             near &= _interior(xyz, plane, target, sd, thr)
         below = -sd[near]
+        few = 1.0 / max(1.0 - cfg.band_mirror_quantile, 1e-9)
+        if cfg.band_gap and 20 <= len(below) < few:
+            # too few depths for the quantile to rest on more than the deepest one or two
+            below = np.sort(below)
+            gaps = np.nonzero(np.diff(below) > thr)[0]
+            if len(gaps):
+                below = below[:gaps[0] + 1]
         if len(below) >= 20:
             mirror = float(np.quantile(below, cfg.band_mirror_quantile))
             if cfg.band_tail:
