@@ -14,6 +14,12 @@ Layouts (``SimConfig`` options; ring distances in OOI radii):
   ``wide``      a 90 deg lens at 544x408: the object as many pixels across as in ``orbit``,
                 but 3x the room around it in every frame
   ``wide-low``  a 90 deg lens at 320x240 (the object 0.6x as wide in pixels)
+  ``barrel``    the scene's rings through its own 60 deg lens with barrel distortion
+                (plumb_bob k1 -0.12, k2 0.03: a small drone camera's, uncorrected)
+  ``loose-aim`` the scene's rings, each view aimed 0.3 OOI radii off the object's centre
+                (std; the default capture's is 0.05): a pilot or gimbal that frames loosely
+  ``noisy``     the scene's rings in poor light: sensor noise 6 (of 255; default 1.5) and
+                10% exposure swings (default 3%)
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_layouts.py \\
         --scenes aircraft tabletop toycar stool bicycle --layouts one-ring half-arc wide \\
@@ -36,7 +42,8 @@ from bench_seg_quality import load_case  # noqa: E402
 from ooi_seg_ros.seg.pipeline import make_config, segment  # noqa: E402
 from ooi_seg_ros.sim import make_scene  # noqa: E402
 
-LAYOUTS = ("orbit", "one-ring", "half-arc", "far", "wide", "wide-low")
+LAYOUTS = ("orbit", "one-ring", "half-arc", "far", "wide", "wide-low", "barrel", "loose-aim",
+           "noisy")
 
 
 def layout(scene: str, name: str, seed: int) -> tuple[dict, tuple[int, int]]:
@@ -54,6 +61,12 @@ def layout(scene: str, name: str, seed: int) -> tuple[dict, tuple[int, int]]:
         return {"hfov_deg": 90.0}, (544, 408)
     if name == "wide-low":
         return {"hfov_deg": 90.0}, (320, 240)
+    if name == "barrel":
+        return {"distortion": [-0.12, 0.03, 0.0, 0.0, 0.0]}, (320, 240)
+    if name == "loose-aim":
+        return {"aim_jitter": 0.3}, (320, 240)
+    if name == "noisy":
+        return {"sensor_noise": 6.0, "exposure_jitter": 0.1}, (320, 240)
     raise ValueError(f"unknown layout {name!r}; choose from {', '.join(LAYOUTS)}")
 
 
