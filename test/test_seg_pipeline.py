@@ -259,6 +259,9 @@ def test_mask_keys_subset_equals_the_full_run(aircraft):
     keys = [v.key for v in sim.capture.views][3::4]
     sub = segment(sim.capture, cloud, make_config("ours", opts), mask_keys=keys)
     assert sub.params["refine"]["planes"] >= 1
+    # the capture's noise is measured and reported (the same whatever the subset)
+    assert sub.params["refine"]["image_noise"] == full.params["refine"]["image_noise"]
+    assert sub.params["refine"]["image_noise"]["sigma"] > 0
     assert set(sub.masks) == set(keys)
     for k in keys:
         np.testing.assert_array_equal(sub.masks[k], full.masks[k])

@@ -839,6 +839,76 @@ def test_plane_check_exposure_matches_a_neighbour_s_gain_before_the_colour_test(
     assert found[True] > 1.25 * found[False]  # measured 0.119 -> 0.165
 
 
+def test_noise_sigma_measures_pixel_noise_not_the_image_s_texture():
+    """The robust Laplacian estimator recovers white noise's std under smooth shading and
+    texture, reads near 0 on the same image without noise, and ignores pixels not ``ok``."""
+    from ooi_seg_ros.seg.photo import noise_sigma
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:120, 0:160].astype(np.float32)
+    clean = 100 + 0.3 * x + 20 * np.sin(x / 9.0) * np.cos(y / 7.0)
+    assert noise_sigma(clean) < 0.3
+    for sd in (1.5, 4.0, 8.0):
+        est = noise_sigma(clean + rng.normal(0, sd, clean.shape).astype(np.float32))
+        assert est == pytest.approx(sd, rel=0.15)
+    ok = np.zeros(clean.shape, bool)
+    ok[:, :80] = True
+    half = clean.copy()
+    half[:, 80:] += rng.normal(0, 20, (120, 80)).astype(np.float32)
+    assert noise_sigma(half, ok) < 0.3
+    assert noise_sigma(np.zeros((2, 2), np.float32)) == 0.0
+
+
+def test_capture_noise_tells_a_dim_capture_from_a_clean_one_and_adapts_the_plane_check():
+    """``capture_noise`` reads the simulator's clean 320x240 images (sensor noise 1.5) under
+    the ``ours`` preset's ``adapt_noise`` and dim ones (6) over it; the refinement reports the
+    reading (the pipeline tests check a clean capture is not adapted)."""
+    from ooi_seg_ros.seg.pipeline import make_config
+    from ooi_seg_ros.seg.photo import capture_noise
+    from ooi_seg_ros.sim import simulate_capture
+    level = make_config("ours").refine.plane_check.adapt_noise
+    assert level > 0
+    read = {}
+    for noise in (1.5, 6.0):
+        sim = simulate_capture("tabletop", n_views=8, width=320, height=240, seed=0,
+                               sensor_noise=noise)
+        read[noise] = capture_noise(sim.capture.views)
+    print(read)
+    assert read[1.5] < level < read[6.0]
+    assert capture_noise([]) == 0.0
+
+
+def test_plane_check_noise_ncc_finds_the_floor_of_a_noisy_capture():
+    """Sensor noise 6 (of 255; the default capture's is 1.5) lowers the NCC of floor patches
+    that line up under ``min_ncc``, and GrabCut then takes the floor. With ``noise_ncc`` the
+    NCC is corrected for the noise both images carry: the floor near the object is found
+    again and the object still is not."""
+    from ooi_seg_ros.seg.photo import PlaneCheckConfig, PlaneConsistency
+    from ooi_seg_ros.sim import simulate_capture
+    sim = simulate_capture("tabletop", n_views=24, width=128, height=96, seed=0,
+                           sensor_noise=6.0)
+    views = sim.capture.views
+    plane = np.array([0.0, 0.0, 1.0, -sim.scene.support_z])
+    target = np.mean(sim.capture.gt_ooi_points, axis=0)
+    found = {}
+    for noise_ncc in (False, True):
+        pc = PlaneConsistency(views, plane, target,
+                              PlaneCheckConfig(enabled=True, max_deg=40.0, noise_ncc=noise_ncc))
+        obj_hit = obj_n = floor_hit = floor_n = 0
+        for i in range(0, 24, 4):
+            v = views[i]
+            fl = pc.floor_map(i, (0, 96, 0, 128))
+            near = ndimage.binary_dilation(v.gt_mask, iterations=8) & ~v.gt_mask
+            obj_hit += (fl & v.gt_mask).sum()
+            obj_n += v.gt_mask.sum()
+            floor_hit += (fl & near).sum()
+            floor_n += near.sum()
+        found[noise_ncc] = floor_hit / floor_n
+        print("noise_ncc", noise_ncc, "object called floor", obj_hit / obj_n,
+              "floor near it called floor", found[noise_ncc])
+        assert obj_hit < 0.02 * obj_n
+    assert found[True] > 1.25 * found[False]
+
+
 @pytest.mark.parametrize("dist", [(), (-0.12, 0.03, 0.001, -0.002, 0.0)])
 def test_plane_check_samples_in_float32_where_float64_would(dist):
     """``PointSet``: the plane check projects each crop's points into ~8 neighbours in float32

@@ -158,6 +158,19 @@ class PlaneCheckConfig:
     # Cameras auto-expose; a 10% gain moves a white floor line by 20+ grey levels and fails
     # ``max_diff`` while the grey floor around it passes (demo bag view 32: the line's patches
     # matched in 6-13% of two neighbours, 43-66% with the gain, object pixels 0-1.4%)
+    noise_ncc: bool = False  # patch tests that allow for the images' own noise: each crop's
+    # and warp's grey-level noise is measured (``noise_sigma``); a patch is textured when its
+    # variance less the noise's exceeds ``min_std``^2 and the noise's own; its NCC is divided
+    # by the ceiling two noisy copies of one texture reach (sqrt((1 - s_a^2/v_a)(1 - s_b^2/v_b)),
+    # the correction for attenuation) before ``min_ncc``; ``max_diff`` gets the mean absolute
+    # difference the noise alone makes. Noise lowers a true match's NCC: in a dim capture
+    # (sensor noise 6/255) the floor stops matching and GrabCut takes it
+    adapt_noise: float = 0.0  # switch ``noise_ncc`` and ``exposure`` on for a capture whose
+    # images' median noise (``noise_sigma``, grey levels, over up to 8 views spread through
+    # it) exceeds this (0 = off). Both lift a dim capture's masks (sensor noise 6/255 and 10%
+    # exposure swings: aircraft 0.81 -> 0.91) but cost a clean one's recall a little
+    # (aircraft 0.974 -> 0.969): the simulator's clean captures read 1.0-1.5, the real
+    # bonsai photos 0.1-0.4, the dim ones 3.7-4.5 (BENCHMARKS, session 73)
     behind_window: int = 0  # behind: side (px) of its compared patches; 0 = ``window``
     # (background seen between leaves or spokes is often narrower than the planes' patch, and
     # a patch that straddles the object never matches)
@@ -168,16 +181,68 @@ def _grey(x: np.ndarray) -> np.ndarray:
     return (x[..., 0] + x[..., 1] + x[..., 2]) * np.float32(1.0 / 3.0)
 
 
+def noise_sigma(g: np.ndarray, ok: Optional[np.ndarray] = None) -> float:
+    """Std of a grey image's pixel noise (0-255 units), from its least textured parts: the
+    response r to the 3x3 kernel [[1, -2, 1], [-2, 4, -2], [1, -2, 1]] (it cancels constant
+    and linear shading; on white noise of std s its variance is 36 s^2), the mean of r^2 over
+    7x7 windows, and the 10% quantile of those means over 36 -- which on white noise reads
+    0.588 s^2 (the quantile of a mean of 49 correlated squares; measured on 10^6 px of
+    N(0, 1)), so it is divided by that. Texture adds to r^2, so the windows that show least
+    of it (a wall, a smooth fuselage) measure the noise. ``ok``: pixels to use (windows
+    wholly inside); 0 with fewer than 25 windows."""
+    import cv2
+    w = 7
+    if g.shape[0] < w + 2 or g.shape[1] < w + 2:
+        return 0.0
+    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    r = cv2.filter2D(g.astype(np.float32), -1, k, borderType=cv2.BORDER_REPLICATE)
+    m = cv2.boxFilter(r * r, -1, (w, w), borderType=cv2.BORDER_REPLICATE)
+    sel = np.zeros(g.shape, bool)
+    h = w // 2 + 1  # the windows' kernel responses lie wholly inside the image
+    sel[h:-h, h:-h] = True
+    if ok is not None:
+        sel &= ndimage.binary_erosion(ok, np.ones((w + 2, w + 2), bool))
+    if sel.sum() < 25:
+        return 0.0
+    return float(np.sqrt(max(float(np.quantile(m[sel], 0.1)), 0.0) / (36.0 * 0.588)))
+
+
+def capture_noise(views: list[View], count: int = 8) -> float:
+    """Median ``noise_sigma`` of the grey images of up to ``count`` views spread evenly
+    through the capture (0 with no readable image)."""
+    if not views:
+        return 0.0
+    pick = np.unique(np.linspace(0, len(views) - 1, max(1, count)).round().astype(int))
+    out = []
+    for i in pick:
+        im = views[int(i)].get_image()
+        if im is None:
+            continue
+        im = np.asarray(im, np.float32)
+        out.append(noise_sigma(_grey(im) if im.ndim == 3 else im))
+    return float(np.median(out)) if out else 0.0
+
+
 def _warp_ncc(ga: np.ndarray, ma: np.ndarray, va: np.ndarray, b: np.ndarray, ok: np.ndarray,
-              box_mean) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              box_mean, noise_a: Optional[float] = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Patch NCC of grey crop ``ga`` (patch means ``ma``, variances ``va``) against a
     neighbour's warp ``b`` [h, w, 3] (valid where ``ok``), where the whole patch lies inside
-    the neighbour's frame, and the warp's patch means."""
+    the neighbour's frame, the warp's patch means, and the warp's noise std (0 unless
+    ``noise_a``, the crop's noise std, is given: then the NCC is corrected for both noises,
+    ``PlaneCheckConfig.noise_ncc``)."""
     gb = _grey(b)
     mb = box_mean(gb)
     vb = np.maximum(box_mean(gb * gb) - mb * mb, 0.0)
     ncc = (box_mean(ga * gb) - ma * mb) / np.sqrt(np.maximum(va * vb, 1e-6))
-    return ncc, box_mean(ok.astype(np.float32)) > 0.999, mb
+    whole = box_mean(ok.astype(np.float32)) > 0.999
+    nb = 0.0
+    if noise_a is not None:
+        nb = noise_sigma(gb, ok)
+        ceil = np.sqrt(np.clip(1.0 - noise_a ** 2 / np.maximum(va, 1e-6), 1e-3, 1.0)
+                       * np.clip(1.0 - nb ** 2 / np.maximum(vb, 1e-6), 1e-3, 1.0))
+        ncc = ncc / ceil
+    return ncc, whole, mb, nb
 
 
 def _pair_gain(ma: np.ndarray, mb: np.ndarray, sel: np.ndarray, lo: float = 0.5,
@@ -425,7 +490,7 @@ class PlaneConsistency:
                     b, ok = self.sample(j, pts, None, ga.shape)
                     if not ok.any():
                         continue
-                    ncc, whole, mb = _warp_ncc(ga, ma, va, b, ok, box_mean)
+                    ncc, whole, mb, _ = _warp_ncc(ga, ma, va, b, ok, box_mean)
                     diff = box_mean(_grey(np.abs(self._image(i)[y0:y1, x0:x1] - b)))
                     votes += whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
                 counts[o] += int(((votes >= max(1, cfg.rank)) & test).sum())
@@ -655,7 +720,11 @@ class PlaneConsistency:
 
             ma = box_mean(ga)
             va = np.maximum(box_mean(ga * ga) - ma * ma, 0.0)
-            textured = va > cfg.min_std ** 2
+            na = noise_sigma(ga) if cfg.noise_ncc else None
+            if na is None:
+                textured = va > cfg.min_std ** 2
+            else:  # texture, not noise: its variance less the noise's over both floors
+                textured = va - na ** 2 > max(cfg.min_std ** 2, na ** 2)
             votes = np.zeros(ga.shape, np.int32)
             votes_s = np.zeros(ga.shape, np.int32)
             pts = PointSet(X, hit)  # sampled in every neighbour
@@ -663,14 +732,17 @@ class PlaneConsistency:
                 b, ok = self.sample(j, pts, None, ga.shape)
                 if not ok.any():
                     continue
-                ncc, whole, mb = _warp_ncc(ga, ma, va, b, ok, box_mean)
+                ncc, whole, mb, nb = _warp_ncc(ga, ma, va, b, ok, box_mean, na)
+                max_diff = cfg.max_diff
+                if na is not None:  # the mean |a - b| two noises alone make
+                    max_diff += float(np.sqrt(2.0 / np.pi) * np.hypot(na, nb))
                 gain = 1.0
                 if cfg.exposure:
                     gain = _pair_gain(ma, mb, whole & textured & (ncc > cfg.min_ncc))
                     b = b * gain
                 pix = _grey(np.abs(a - b))  # per-pixel colour difference to the warp
                 diff = box_mean(pix)
-                match = whole & (ncc > cfg.min_ncc) & (diff < cfg.max_diff)
+                match = whole & (ncc > cfg.min_ncc) & (diff < max_diff)
                 if support and raised is not None:
                     match &= self._parallax(j, pts, raised, box, ga.shape) >= cfg.parallax_px
                 bo = oko = None  # the neighbour at the object's depth (sampled once)

@@ -138,7 +138,8 @@ def preset(method: str) -> dict:
                                            "keep_discs": True, "object_guard": True,
                                            "pixel_votes": True, "pixel_reach": 1,
                                            "pixel_reach_density": 0.2,
-                                           "pixel_reach_ground": 0.8}}}
+                                           "pixel_reach_ground": 0.8,
+                                           "adapt_noise": 2.0}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 

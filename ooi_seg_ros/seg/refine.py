@@ -20,6 +20,7 @@ within +-0.005 IoU; the refinement costs about twice the time).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -30,7 +31,7 @@ from ..core.geometry import finite_rows
 from ..core.types import SfmCloud, View
 from .masks import (MaskConfig, fill_small_holes, outline_vote, point_masks,
                     project_distorted)
-from .photo import PlaneCheckConfig, PlaneConsistency, PointSet
+from .photo import PlaneCheckConfig, PlaneConsistency, PointSet, capture_noise
 from .thin import BridgeConfig, check_config, thin_bridges
 
 
@@ -1324,8 +1325,15 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                     "enlarged_iterations": int(cfg.enlarged_iterations)}
     floor = None
     if cfg.plane_check.enabled and plane is not None and target is not None:
+        pc_cfg = cfg.plane_check
+        if pc_cfg.adapt_noise > 0:
+            noise = capture_noise(views)
+            adapt = noise > pc_cfg.adapt_noise
+            params["image_noise"] = {"sigma": round(noise, 3), "adapted": bool(adapt)}
+            if adapt:
+                pc_cfg = dataclasses.replace(pc_cfg, noise_ncc=True, exposure=True)
         floor = PlaneConsistency(views, np.asarray(plane, float), np.asarray(target, float),
-                                 cfg.plane_check)
+                                 pc_cfg)
         if cfg.plane_check.behind:
             floor.behind_xyz = background.xyz
         if (cfg.plane_check.behind or cfg.plane_check.shifted or cfg.plane_check.object_keep
