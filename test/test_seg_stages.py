@@ -820,9 +820,11 @@ def test_plane_check_exposure_matches_a_neighbour_s_gain_before_the_colour_test(
     plane = np.array([0.0, 0.0, 1.0, -sim.scene.support_z])
     target = np.mean(sim.capture.gt_ooi_points, axis=0)
     found = {}
-    for exposure in (False, True):
+    for exposure in (False, True, "auto"):
         pc = PlaneConsistency(views, plane, target,
-                              PlaneCheckConfig(enabled=True, max_deg=40.0, exposure=exposure))
+                              PlaneCheckConfig(enabled=True, max_deg=40.0,
+                                               exposure=exposure is True,
+                                               exposure_auto=exposure == "auto"))
         obj_hit = obj_n = floor_hit = floor_n = 0
         for i in range(0, 24, 4):
             v = views[i]
@@ -837,6 +839,16 @@ def test_plane_check_exposure_matches_a_neighbour_s_gain_before_the_colour_test(
               "floor near it called floor", found[exposure])
         assert obj_hit < 0.02 * obj_n
     assert found[True] > 1.25 * found[False]  # measured 0.119 -> 0.165
+    # exposure_auto: a 20% gain moves the floor's grey level past half max_diff: matched too
+    assert found["auto"] > 1.25 * found[False]
+    # ... while on the capture as simulated (3% swings) it changes nothing
+    pc0, pc1 = (PlaneConsistency(sim.capture.views, plane, target,
+                                 PlaneCheckConfig(enabled=True, max_deg=40.0, exposure_auto=a))
+                for a in (False, True))
+    same = [np.array_equal(pc0.floor_map(i, (0, 96, 0, 128)), pc1.floor_map(i, (0, 96, 0, 128)))
+            for i in range(0, 24, 4)]
+    print("views unchanged by exposure_auto", same)
+    assert sum(same) >= 5
 
 
 def test_noise_sigma_measures_pixel_noise_not_the_image_s_texture():
