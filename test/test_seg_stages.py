@@ -857,6 +857,73 @@ def test_plane_check_exposure_matches_a_neighbour_s_gain_before_the_colour_test(
     assert sum(same) >= 5
 
 
+def test_view_exposures_recovers_each_view_s_gain_from_the_sfm_observations():
+    """10% exposure swings: each view's log exposure, solved from the grey levels at the points
+    the views share (x = s_point + e_view, alternating medians), matches the simulator's own
+    draw; points whose brightness changes with the viewing angle (a quarter of them 1.4x
+    brighter in every other view, as a sheen would) move no view's exposure much (a gain
+    measured on those points' patches alone would be 1.4), and views seeing too few points
+    stay at 0."""
+    from ooi_seg_ros.seg.photo import view_exposures
+    from ooi_seg_ros.sim import simulate_capture
+    from ooi_seg_ros.sim.capture import _view_rng
+    sim = simulate_capture("tabletop", n_views=24, width=128, height=96, seed=0,
+                           exposure_jitter=0.1)
+    views = sim.capture.views
+    true = np.log([np.clip(1.0 + _view_rng(0, k).normal(0, 0.1), 0.8, 1.2)
+                   for k in range(len(views))])
+    # surface points on every surface: view 0's and view 12's depth maps back-projected
+    pts = []
+    for i in (0, 12):
+        v, d = views[i], sim.depths[i]
+        ys, xs = np.mgrid[3:96:8, 3:128:8]
+        z = d[ys, xs]
+        ok = np.isfinite(z) & (z > 0)
+        xn = (xs[ok] - v.camera.cx) / v.camera.fx * z[ok]
+        yn = (ys[ok] - v.camera.cy) / v.camera.fy * z[ok]
+        pts.append(np.c_[xn, yn, z[ok]] @ v.pose.R.T + v.pose.t)
+    xyz = np.vstack(pts)
+    # a quarter of the points change brightness with the viewing angle (a sheen, a highlight)
+    sheen_pt = np.random.default_rng(0).random(len(xyz)) < 0.25
+
+    def observations(images):
+        obs = []
+        for v, d in zip(views, sim.depths):
+            xy, z = project_distorted(xyz, v.camera, v.pose)
+            inb = (z > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < 127.5) & (xy[:, 1] >= 0) & \
+                (xy[:, 1] < 95.5)
+            idx = np.nonzero(inb)[0]
+            r, c = np.round(xy[idx, 1]).astype(int), np.round(xy[idx, 0]).astype(int)
+            vis = np.abs(d[r, c] - z[idx]) < 0.01 * z[idx]  # not hidden
+            obs.append((idx[vis], xy[idx[vis]].astype(np.float32)))
+        return obs
+
+    obs = observations(views)
+    e = view_exposures(obs, views)
+    err = (e - np.median(e)) - (true - np.median(true))
+    print("true", np.round(true, 3), "\nerr", np.round(err, 3))
+    assert np.ptp(true) > 0.3
+    assert np.abs(err).max() < 0.04  # 4%: a 120 grey level within 5
+    # the sheen: those points' pixels 1.4x brighter in every other view
+    shone = []
+    for k, (v, o) in enumerate(zip(views, obs)):
+        im = v.get_image().astype(np.float32)
+        if k % 2:
+            sel = sheen_pt[o[0]]
+            r, c = np.round(o[1][sel, 1]).astype(int), np.round(o[1][sel, 0]).astype(int)
+            lit = np.zeros(im.shape[:2], bool)
+            lit[r, c] = True
+            im[ndimage.binary_dilation(lit, np.ones((5, 5), bool))] *= 1.4
+        shone.append(replace(v, image=np.clip(im, 0, 255).astype(np.uint8), loader=None))
+    e2 = view_exposures(obs, shone)
+    err2 = (e2 - np.median(e2)) - (true - np.median(true))
+    print("err with the sheen", np.round(err2, 3))
+    assert np.abs(err2).max() < 0.3 * np.log(1.4)  # measured 0.057 of the sheen's 0.336
+    # a view with fewer than min_points usable observations stays at 0
+    few = [o if k != 3 else (o[0][:5], o[1][:5]) for k, o in enumerate(obs)]
+    assert view_exposures(few, views)[3] == 0.0
+
+
 def test_noise_sigma_measures_pixel_noise_not_the_image_s_texture():
     """The robust Laplacian estimator recovers white noise's std under smooth shading and
     texture, reads near 0 on the same image without noise, and ignores pixels not ``ok``."""

@@ -173,10 +173,13 @@ class PlaneCheckConfig:
     # bonsai photos 0.1-0.4, the dim ones 3.7-4.5 (BENCHMARKS, session 73)
     exposure_auto: bool = False  # ``exposure`` for a view pair only where its gain moves the
     # matching patches' median grey level by more than half ``max_diff`` (a 10% swing on a
-    # mid-grey floor; the default capture's 3% swings mostly stay uncorrected, as before).
-    # Off: 10% exposure swings, aircraft 0.873 -> 0.923, bicycle 0.822 -> 0.864, clean captures
-    # within +-0.005, but on the real bonsai it changes 7 of 289 masks by over 5%, each for
-    # the worse by eye (the stand's foot leaves, wall beside the crown joins; session 73)
+    # mid-grey floor; the default capture's 3% swings mostly stay uncorrected, as before), the
+    # gain being the two views' exposure ratio measured on every surface the SfM matched
+    # (``view_exposures``, set by the refinement), not the pair's floor patches: on the real
+    # bonsai those gave 1.15-2.0 (the knit cloth's brightness changes with the viewing angle)
+    # where the SfM points give 0.94-1.07, and 7 of 289 masks got worse (session 73); measured
+    # on every surface, 0 masks change by over 5% (session 74). 10% exposure swings, seed 0:
+    # aircraft 0.873 -> 0.928, tabletop 0.925 -> 0.932, bicycle 0.822 -> 0.862
     behind_window: int = 0  # behind: side (px) of its compared patches; 0 = ``window``
     # (background seen between leaves or spokes is often narrower than the planes' patch, and
     # a patch that straddles the object never matches)
@@ -227,6 +230,71 @@ def capture_noise(views: list[View], count: int = 8) -> float:
         im = np.asarray(im, np.float32)
         out.append(noise_sigma(_grey(im) if im.ndim == 3 else im))
     return float(np.median(out)) if out else 0.0
+
+
+def _group_median(group: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Median of ``x`` per ``group`` id (0..n-1) and each group's count (median 0 if empty)."""
+    order = np.lexsort((x, group))
+    g, xs = group[order], x[order]
+    cnt = np.bincount(g, minlength=n)
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    med = np.zeros(n)
+    has = cnt > 0
+    lo = start[has] + (cnt[has] - 1) // 2
+    hi = start[has] + cnt[has] // 2
+    med[has] = 0.5 * (xs[lo] + xs[hi])
+    return med, cnt
+
+
+def view_exposures(obs: list[tuple[np.ndarray, np.ndarray]], views: list[View],
+                   min_points: int = 20, iterations: int = 10) -> np.ndarray:
+    """Each view's log exposure [V] (median 0 over the views it is known for; 0 where unknown)
+    from the SfM observations: ``obs`` = per view (point ids, pixel xy) of the features it saw.
+
+    A surface point's grey level in view i is its brightness times view i's exposure, so with
+    x = log(5x5 mean grey level at the observation), x = s_point + e_view; solved by
+    alternating medians (robust to the few points whose brightness changes with the viewing
+    angle: sheen, specular highlights, a mismatched feature). Levels outside 10..245 (noise
+    floor, clipping) are not used; a view with fewer than ``min_points`` usable observations
+    of points seen in another view stays at 0. Every surface the SfM matched counts -- walls,
+    object, floor alike -- so a brightness change of one surface seen from another angle (a
+    knit cloth's sheen) is not taken for an exposure change."""
+    import cv2
+    vid, pid, val = [], [], []
+    for i, (ids, xy) in enumerate(obs):
+        if len(ids) == 0:
+            continue
+        im = np.asarray(views[i].get_image(), np.float32)
+        g = _grey(im) if im.ndim == 3 else im
+        if g.max() <= 1.0:
+            g = g * 255.0
+        g = cv2.boxFilter(g, -1, (5, 5), borderType=cv2.BORDER_REPLICATE)
+        x = np.clip(np.round(xy[:, 0]).astype(np.int64), 0, g.shape[1] - 1)
+        y = np.clip(np.round(xy[:, 1]).astype(np.int64), 0, g.shape[0] - 1)
+        v = g[y, x]
+        ok = (v > 10.0) & (v < 245.0)
+        vid.append(np.full(int(ok.sum()), i, np.int64))
+        pid.append(np.asarray(ids, np.int64)[ok])
+        val.append(np.log(v[ok].astype(np.float64)))
+    e = np.zeros(len(views))
+    if not vid:
+        return e
+    vid, pid, val = np.concatenate(vid), np.concatenate(pid), np.concatenate(val)
+    _, pid = np.unique(pid, return_inverse=True)
+    seen = np.bincount(pid)
+    keep = seen[pid] >= 2  # points seen in at least two views tie the views together
+    vid, pid, val = vid[keep], pid[keep], val[keep]
+    if not len(val):
+        return e
+    npts = int(pid.max()) + 1
+    known = np.bincount(vid, minlength=len(views)) >= min_points
+    for _ in range(int(iterations)):
+        s, _ = _group_median(pid, val - e[vid], npts)
+        e, _ = _group_median(vid, val - s[pid], len(views))
+        e[~known] = 0.0
+        if known.any():
+            e[known] -= np.median(e[known])
+    return e
 
 
 def _warp_ncc(ga: np.ndarray, ma: np.ndarray, va: np.ndarray, b: np.ndarray, ok: np.ndarray,
@@ -389,6 +457,8 @@ class PlaneConsistency:
         self._img: OrderedDict = OrderedDict()
         self.seconds = 0.0  # time spent in floor_map (reported by the refinement)
         self.pixel_floor: dict = {}  # (view, box) -> ``pixel_votes`` floor not in the floor
+        self.exposures: Optional[np.ndarray] = None  # per-view log exposure (``view_exposures``;
+        # exposure_auto's gains when set, else each pair's gain over the matching patches)
 
     def _image(self, j: int) -> np.ndarray:
         if j in self._img:
@@ -745,7 +815,10 @@ class PlaneConsistency:
                 gain = 1.0
                 if cfg.exposure or cfg.exposure_auto:
                     sel = whole & textured & (ncc > cfg.min_ncc)
-                    gain = _pair_gain(ma, mb, sel)
+                    if cfg.exposure or self.exposures is None:
+                        gain = _pair_gain(ma, mb, sel)
+                    elif int(sel.sum()) >= 50:  # exposure_auto: the views' own exposures
+                        gain = float(np.exp(self.exposures[i] - self.exposures[j]))
                     if (not cfg.exposure and gain != 1.0
                             and abs(gain - 1.0) * float(np.median(mb[sel])) <= 0.5 * max_diff):
                         gain = 1.0  # exposure_auto: the change is within the colour test's play

@@ -31,7 +31,8 @@ from ..core.geometry import finite_rows
 from ..core.types import SfmCloud, View
 from .masks import (MaskConfig, fill_small_holes, outline_vote, point_masks,
                     project_distorted)
-from .photo import PlaneCheckConfig, PlaneConsistency, PointSet, capture_noise
+from .photo import (PlaneCheckConfig, PlaneConsistency, PointSet, capture_noise,
+                    view_exposures)
 from .thin import BridgeConfig, check_config, thin_bridges
 
 
@@ -216,6 +217,31 @@ def _obs_by_view(cloud: SfmCloud, views: list[View]) -> list[np.ndarray]:
         if j is not None:
             out[j] = xy[bounds[i]:bounds[i + 1]]
     return out
+
+
+def _obs_ids_by_view(clouds: list[SfmCloud], views: list[View]
+                     ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(point ids, pixel xy) of the observations of ``clouds``' points in each of ``views``
+    (matched by key, as ``_obs_by_view``); ids are unique over the clouds together."""
+    where = {v.key: j for j, v in enumerate(views)}
+    ids: list[list] = [[] for _ in views]
+    xys: list[list] = [[] for _ in views]
+    base = 0
+    for c in clouds:
+        src = c.views if c.views else views
+        vj = np.array([where.get(v.key, -1) for v in src], np.int64)
+        if len(c.obs_view):
+            jv = vj[c.obs_view]
+            pid = np.repeat(np.arange(len(c), dtype=np.int64), np.diff(c.obs_ptr)) + base
+            order = np.argsort(jv, kind="stable")
+            jv, pid, xy = jv[order], pid[order], c.obs_xy[order]
+            bounds = np.searchsorted(jv, np.arange(len(views) + 1))
+            for j in range(len(views)):
+                ids[j].append(pid[bounds[j]:bounds[j + 1]])
+                xys[j].append(xy[bounds[j]:bounds[j + 1]])
+        base += len(c)
+    return [(np.concatenate(i) if i else np.zeros(0, np.int64),
+             np.concatenate(x) if x else np.zeros((0, 2), np.float32)) for i, x in zip(ids, xys)]
 
 
 def _obs_depths(clouds: list[SfmCloud], views: list[View]) -> list[tuple]:
@@ -1334,6 +1360,11 @@ def refine_masks(masks: dict[str, np.ndarray], views: list[View], ooi: SfmCloud,
                 pc_cfg = dataclasses.replace(pc_cfg, noise_ncc=True, exposure=True)
         floor = PlaneConsistency(views, np.asarray(plane, float), np.asarray(target, float),
                                  pc_cfg)
+        if pc_cfg.exposure_auto and not pc_cfg.exposure:
+            # exposure is the view's: measured on every surface the SfM matched, not on the
+            # floor patches alone (whose brightness may change with the viewing angle)
+            floor.exposures = view_exposures(_obs_ids_by_view([ooi, background], views), views)
+            params["exposure_spread"] = round(float(np.ptp(floor.exposures)), 4)
         if cfg.plane_check.behind:
             floor.behind_xyz = background.xyz
         if (cfg.plane_check.behind or cfg.plane_check.shifted or cfg.plane_check.object_keep
