@@ -139,7 +139,7 @@ def preset(method: str) -> dict:
                                            "pixel_votes": True, "pixel_reach": 1,
                                            "pixel_reach_density": 0.2,
                                            "pixel_reach_ground": 0.8,
-                                           "adapt_noise": 2.0}}}
+                                           "adapt_noise": 2.0, "exposure_auto": True}}}
     raise InputError(f"unknown segmentation method {method!r}; choose one of {METHODS}")
 
 
