@@ -20,6 +20,8 @@ Layouts (``SimConfig`` options; ring distances in OOI radii):
                 (std; the default capture's is 0.05): a pilot or gimbal that frames loosely
   ``noisy``     the scene's rings in poor light: sensor noise 6 (of 255; default 1.5) and
                 10% exposure swings (default 3%)
+  ``vignette``  the scene's rings through a lens whose corners get 60% of the centre's light
+                (``vignetting`` 0.4: gain 1 - 0.4 r^2, r over the half diagonal), uncorrected
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_layouts.py \\
         --scenes aircraft tabletop toycar stool bicycle --layouts one-ring half-arc wide \\
@@ -43,7 +45,7 @@ from ooi_seg_ros.seg.pipeline import make_config, segment  # noqa: E402
 from ooi_seg_ros.sim import make_scene  # noqa: E402
 
 LAYOUTS = ("orbit", "one-ring", "half-arc", "far", "wide", "wide-low", "barrel", "loose-aim",
-           "noisy")
+           "noisy", "vignette")
 
 
 def layout(scene: str, name: str, seed: int) -> tuple[dict, tuple[int, int]]:
@@ -67,6 +69,8 @@ def layout(scene: str, name: str, seed: int) -> tuple[dict, tuple[int, int]]:
         return {"aim_jitter": 0.3}, (320, 240)
     if name == "noisy":
         return {"sensor_noise": 6.0, "exposure_jitter": 0.1}, (320, 240)
+    if name == "vignette":
+        return {"vignetting": 0.4}, (320, 240)
     raise ValueError(f"unknown layout {name!r}; choose from {', '.join(LAYOUTS)}")
 
 

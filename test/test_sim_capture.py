@@ -223,3 +223,29 @@ def test_partial_orbit_spans_its_arc_only():
     assert np.ptp(az) > 110.0
     with pytest.raises(InputError, match="arc_deg"):
         orbit_poses(sc, 30, seed=0, arc_deg=0.0)
+
+
+def test_vignetting_darkens_the_corners_by_its_gain_only():
+    """``vignetting`` v multiplies each pixel by 1 - v r^2 (r: distance from the principal
+    point over the half diagonal) before the sensor noise; 0 leaves the images and the
+    recorded config as they were (captures simulated before the option keep their bytes)."""
+    plain = simulate_capture("tabletop", n_views=2, width=96, height=72, seed=0,
+                             sensor_noise=0.0)
+    vig = simulate_capture("tabletop", n_views=2, width=96, height=72, seed=0,
+                           sensor_noise=0.0, vignetting=0.4)
+    assert "vignetting" not in plain.capture.meta["config"]
+    assert vig.capture.meta["config"]["vignetting"] == 0.4
+    a = plain.capture.views[0].image.astype(float)
+    b = vig.capture.views[0].image.astype(float)
+    cam = plain.capture.views[0].camera
+    yy, xx = np.mgrid[0:72, 0:96]
+    r2 = ((xx + 0.5 - cam.cx) ** 2 + (yy + 0.5 - cam.cy) ** 2) / (0.25 * (96 ** 2 + 72 ** 2))
+    expect = a * (1.0 - 0.4 * r2)[..., None]
+    assert np.abs(b - expect).max() <= 1.0  # rounding to 8 bits
+    corner = b[:8, :8].mean() / a[:8, :8].mean()
+    centre = b[32:40, 44:52].mean() / a[32:40, 44:52].mean()
+    print("corner gain", corner, "centre gain", centre)
+    assert corner < 0.72 and centre > 0.99
+    zero = simulate_capture("tabletop", n_views=2, width=96, height=72, seed=0,
+                            sensor_noise=0.0, vignetting=0.0)
+    assert np.array_equal(plain.capture.views[0].image, zero.capture.views[0].image)

@@ -45,6 +45,8 @@ class SimConfig:
     exposure_jitter: float = 0.03  # std of the per-frame exposure gain (auto exposure)
     gt_points: int = 20000  # points sampled on the OOI surface for evaluation
     distortion: Optional[list[float]] = None  # plumb_bob [k1, k2, p1, p2, k3]; None = pinhole
+    vignetting: float = 0.0  # the lens's light falloff toward the corners (gain 1 - v r^2, r
+    # = distance from the principal point over the half diagonal; 0 = none, 0.4 = corners at 60%)
     arc_deg: float = 360.0  # azimuth span each ring flies: 360 = full orbits; less = a partial
     # orbit (an object beside a wall or a no-fly zone), views spread evenly over the arc
 
@@ -73,7 +75,8 @@ class SimCapture:
         exposure = float(np.clip(1.0 + rng.normal(0, cfg.exposure_jitter), 0.8, 1.2))
         res = Renderer(self.scene).render(view.camera, view.pose, cfg.supersample, None, 0.0,
                                           exposure, object_only=True,
-                                          shade_subsamples=cfg.shade_subsamples)
+                                          shade_subsamples=cfg.shade_subsamples,
+                                          vignetting=cfg.vignetting)
         img = res.rgb.astype(np.float32) / 255.0
         return img
 
@@ -227,7 +230,7 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
         rng = _view_rng(cfg.seed, k)
         exposure = float(np.clip(1.0 + rng.normal(0, cfg.exposure_jitter), 0.8, 1.2))
         res = renderer.render(cam, pose, cfg.supersample, rng, cfg.sensor_noise, exposure,
-                              shade_subsamples=cfg.shade_subsamples)
+                              shade_subsamples=cfg.shade_subsamples, vignetting=cfg.vignetting)
         stamp = STAMP_BASE_NS + int(round(k * cfg.frame_interval_s * 1e9))
         views.append(View(key=str(stamp), stamp_ns=stamp, camera=cam, pose=pose,
                           image=res.rgb, gt_mask=res.mask, source=f"sim:{cfg.scene}"))
@@ -239,6 +242,8 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
         del meta["config"]["shade_subsamples"]  # simulated before the option keep their bytes
     if cfg.arc_deg == 360.0:  # likewise
         del meta["config"]["arc_deg"]
+    if not cfg.vignetting:  # likewise
+        del meta["config"]["vignetting"]
     capture = Capture(views=views, source=f"sim:{cfg.scene}:seed{cfg.seed}",
                       gt_ooi_points=scene.sample_ooi_points(cfg.gt_points, cfg.seed), meta=meta)
     return SimCapture(capture, scene, cfg, depths)

@@ -140,7 +140,7 @@ class Renderer:
     def render(self, cam: CameraIntrinsics, pose: Pose, supersample: int = 2,
                rng: Optional[np.random.Generator] = None, sensor_noise: float = 1.5,
                exposure: float = 1.0, object_only: bool = False,
-               shade_subsamples: bool = False) -> RenderResult:
+               shade_subsamples: bool = False, vignetting: float = 0.0) -> RenderResult:
         """Render the view ``pose`` (camera-to-world, optical frame) with intrinsics ``cam``.
 
         ``sensor_noise`` is the std of additive Gaussian pixel noise in 0-255 units (drawn from
@@ -148,6 +148,8 @@ class Renderer:
         ``object_only``: every sub-sample that does not see the OOI is black, so an outline
         pixel holds coverage x object colour -- what an object-only model composited over black
         should render (shadows the rest of the scene casts on the object stay).
+        ``vignetting``: the lens's light falloff, a gain 1 - vignetting * r^2 with r the distance
+        from the principal point over the half diagonal (the corners darkest; 0 = none).
         ``shade_subsamples``: shade every sub-sample (the texture integrated over the pixel, as
         a camera does) instead of once per pixel whose sub-samples all hit the same part (the
         default, cheaper: texture detail finer than a pixel is then point-sampled).
@@ -224,6 +226,10 @@ class Renderer:
         depth = np.where(coherent_geo, depth_s.mean(1), depth_s.min(1)).reshape(H, W)
         depth = depth.astype(np.float32)
         img = img * (exposure * 255.0)
+        if vignetting > 0:
+            yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+            r2 = ((xx + 0.5 - cam.cx) ** 2 + (yy + 0.5 - cam.cy) ** 2) / (0.25 * (W * W + H * H))
+            img = img * (1.0 - float(vignetting) * r2)[..., None]
         if rng is not None and sensor_noise > 0:
             img = img + rng.normal(0.0, sensor_noise, img.shape)
         rgb = np.clip(np.round(img), 0, 255).astype(np.uint8)
