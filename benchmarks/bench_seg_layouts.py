@@ -22,6 +22,9 @@ Layouts (``SimConfig`` options; ring distances in OOI radii):
                 10% exposure swings (default 3%)
   ``vignette``  the scene's rings through a lens whose corners get 60% of the centre's light
                 (``vignetting`` 0.4: gain 1 - 0.4 r^2, r over the half diagonal), uncorrected
+  ``field``     all of it at once, milder: barrel distortion as ``barrel``, vignetting 0.3,
+                sensor noise 4, 8% exposure swings, views aimed 0.15 OOI radii off (a cheap
+                drone on an overcast day)
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_layouts.py \\
         --scenes aircraft tabletop toycar stool bicycle --layouts one-ring half-arc wide \\
@@ -45,7 +48,7 @@ from ooi_seg_ros.seg.pipeline import make_config, segment  # noqa: E402
 from ooi_seg_ros.sim import make_scene  # noqa: E402
 
 LAYOUTS = ("orbit", "one-ring", "half-arc", "far", "wide", "wide-low", "barrel", "loose-aim",
-           "noisy", "vignette")
+           "noisy", "vignette", "field")
 
 
 def layout(scene: str, name: str, seed: int) -> tuple[dict, tuple[int, int]]:
@@ -71,6 +74,9 @@ def layout(scene: str, name: str, seed: int) -> tuple[dict, tuple[int, int]]:
         return {"sensor_noise": 6.0, "exposure_jitter": 0.1}, (320, 240)
     if name == "vignette":
         return {"vignetting": 0.4}, (320, 240)
+    if name == "field":
+        return {"distortion": [-0.12, 0.03, 0.0, 0.0, 0.0], "vignetting": 0.3,
+                "sensor_noise": 4.0, "exposure_jitter": 0.08, "aim_jitter": 0.15}, (320, 240)
     raise ValueError(f"unknown layout {name!r}; choose from {', '.join(LAYOUTS)}")
 
 

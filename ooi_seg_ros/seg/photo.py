@@ -247,7 +247,8 @@ def _group_median(group: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray,
 
 
 def view_exposures(obs: list[tuple[np.ndarray, np.ndarray]], views: list[View],
-                   min_points: int = 20, iterations: int = 10) -> np.ndarray:
+                   min_points: int = 20, iterations: int = 10,
+                   max_obs: int = 250_000) -> np.ndarray:
     """Each view's log exposure [V] (median 0 over the views it is known for; 0 where unknown)
     from the SfM observations: ``obs`` = per view (point ids, pixel xy) of the features it saw.
 
@@ -258,20 +259,31 @@ def view_exposures(obs: list[tuple[np.ndarray, np.ndarray]], views: list[View],
     floor, clipping) are not used; a view with fewer than ``min_points`` usable observations
     of points seen in another view stays at 0. Every surface the SfM matched counts -- walls,
     object, floor alike -- so a brightness change of one surface seen from another angle (a
-    knit cloth's sheen) is not taken for an exposure change."""
-    import cv2
+    knit cloth's sheen) is not taken for an exposure change. Over ``max_obs`` observations, a
+    seeded random share of the points is used (each view keeps its share of them; the medians
+    need hundreds per view, not thousands)."""
     vid, pid, val = [], [], []
+    d = np.arange(-2, 3)
+    total = sum(len(o[0]) for o in obs)
+    keep_share = min(1.0, max_obs / total) if total else 1.0
     for i, (ids, xy) in enumerate(obs):
+        if keep_share < 1.0 and len(ids):
+            # the same points in every view: a hash of the id, not a per-view draw
+            pick = (np.asarray(ids, np.uint64) * np.uint64(2654435761) % np.uint64(1 << 32)) \
+                < np.uint64(keep_share * (1 << 32))
+            ids, xy = np.asarray(ids)[pick], np.asarray(xy)[pick]
         if len(ids) == 0:
             continue
-        im = np.asarray(views[i].get_image(), np.float32)
-        g = _grey(im) if im.ndim == 3 else im
-        if g.max() <= 1.0:
-            g = g * 255.0
-        g = cv2.boxFilter(g, -1, (5, 5), borderType=cv2.BORDER_REPLICATE)
-        x = np.clip(np.round(xy[:, 0]).astype(np.int64), 0, g.shape[1] - 1)
-        y = np.clip(np.round(xy[:, 1]).astype(np.int64), 0, g.shape[0] - 1)
-        v = g[y, x]
+        im = np.asarray(views[i].get_image())
+        h, w = im.shape[:2]
+        # the 5x5 mean grey level around each observation, read at the observations only
+        # (a full-frame filter would cost as much per view as the whole solve on large photos)
+        x = np.clip(np.round(xy[:, 0]).astype(np.int64)[:, None] + d[None], 0, w - 1)
+        y = np.clip(np.round(xy[:, 1]).astype(np.int64)[:, None] + d[None], 0, h - 1)
+        win = im[y[:, :, None], x[:, None, :]].astype(np.float32)  # [n, 5, 5(, 3)]
+        v = win.reshape(len(x), -1).mean(1)
+        if im.dtype != np.uint8 and float(im.max()) <= 1.0:
+            v = v * 255.0
         ok = (v > 10.0) & (v < 245.0)
         vid.append(np.full(int(ok.sum()), i, np.int64))
         pid.append(np.asarray(ids, np.int64)[ok])
