@@ -162,6 +162,9 @@ def test_cli_list_and_bad_input(capsys):
     assert "ELEV:DIST" in capsys.readouterr().err
     assert cli_main(["simulate", "--scene", "bicycle", "--out", "x", "--distortion", "a"]) == 1
     assert "--distortion" in capsys.readouterr().err
+    for flag, bad in (("--noise", "-1"), ("--exposure-jitter", "nan"), ("--vignetting", "1.5")):
+        assert cli_main(["simulate", "--scene", "bicycle", "--out", "x", flag, bad]) == 1
+        assert flag in capsys.readouterr().err
 
 
 def test_cli_parsers():
@@ -249,3 +252,22 @@ def test_vignetting_darkens_the_corners_by_its_gain_only():
     zero = simulate_capture("tabletop", n_views=2, width=96, height=72, seed=0,
                             sensor_noise=0.0, vignetting=0.0)
     assert np.array_equal(plain.capture.views[0].image, zero.capture.views[0].image)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ooi_seg_ros.capture_io") is None,
+                    reason="capture_io (the capture writer) is not in this tree yet")
+def test_cli_simulates_capture_conditions(tmp_path):
+    """``--noise``, ``--exposure-jitter`` and ``--vignetting`` reach the simulator: the written
+    capture is the one ``simulate_capture`` renders with those options (a dim, vignetted one)."""
+    out = tmp_path / "dim"
+    rc = cli_main(["simulate", "--scene", "tabletop", "--out", str(out), "--views", "2",
+                   "--size", "64x48", "--noise", "6", "--exposure-jitter", "0.1",
+                   "--vignetting", "0.4"])
+    assert rc == 0
+    back = importlib.import_module("ooi_seg_ros.capture_io").read_capture(out)
+    sim = simulate_capture("tabletop", n_views=2, width=64, height=48, sensor_noise=6.0,
+                           exposure_jitter=0.1, vignetting=0.4)
+    plain = simulate_capture("tabletop", n_views=2, width=64, height=48)
+    for vb, vs, vp in zip(back.views, sim.capture.views, plain.capture.views):
+        assert np.array_equal(vb.get_image(), vs.image)
+        assert not np.array_equal(vb.get_image(), vp.image)

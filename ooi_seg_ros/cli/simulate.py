@@ -32,6 +32,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "e.g. 180 for an object beside a wall)")
     p.add_argument("--distortion", default=None,
                    help="plumb_bob lens distortion k1,k2[,p1,p2,k3] (default: ideal pinhole)")
+    p.add_argument("--noise", type=float, default=1.5,
+                   help="sensor noise std in 0-255 grey levels (default 1.5; a dim hangar ~6)")
+    p.add_argument("--exposure-jitter", type=float, default=0.03,
+                   help="std of the per-frame exposure gain, auto exposure (default 0.03)")
+    p.add_argument("--vignetting", type=float, default=0.0,
+                   help="lens light falloff: gain 1 - V r^2, r from the centre over the half "
+                        "diagonal (default 0; 0.4 = corners at 60%%)")
     p.add_argument("--list", action="store_true", help="print the scene names and exit")
     p.set_defaults(func=run)
 
@@ -94,6 +101,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--supersample {args.supersample}: use 1..4")
     if not 0 < args.arc <= 360:
         raise InputError(f"--arc {args.arc}: use a span within (0, 360] degrees")
+    for flag, val, hi in (("--noise", args.noise, 64.0),
+                          ("--exposure-jitter", args.exposure_jitter, 0.5),
+                          ("--vignetting", args.vignetting, 0.95)):
+        if not 0.0 <= val <= hi:
+            raise InputError(f"{flag} {val}: use a value within [0, {hi}]")
     w, h = parse_size(args.size)
     rings = parse_rings(args.rings)
     distortion = parse_distortion(args.distortion)
@@ -107,7 +119,9 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     sim = simulate_capture(args.scene, n_views=args.views, width=w, height=h, seed=args.seed,
                            rings=rings, hfov_deg=args.fov, supersample=args.supersample,
-                           distortion=distortion, arc_deg=args.arc)
+                           distortion=distortion, arc_deg=args.arc,
+                           sensor_noise=args.noise, exposure_jitter=args.exposure_jitter,
+                           vignetting=args.vignetting)
     t1 = time.monotonic()
     capture_io.write_capture(sim.capture, args.out)
     cov = [float(v.gt_mask.mean()) for v in sim.capture.views]
