@@ -25,6 +25,10 @@ Layouts (``SimConfig`` options; ring distances in OOI radii):
   ``field``     all of it at once, milder: barrel distortion as ``barrel``, vignetting 0.3,
                 sensor noise 4, 8% exposure swings, views aimed 0.15 OOI radii off (a cheap
                 drone on an overcast day)
+  ``bayer``     the scene's rings through a Bayer sensor: one colour per pixel (RGGB), the
+                image demosaiced (OpenCV edge-aware), its noise correlated between
+                neighbouring pixels as a real camera's (``demosaic``)
+  ``bayer-noisy`` ``noisy`` on that sensor (the noise 6 drawn on the mosaic)
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_seg_layouts.py \\
         --scenes aircraft tabletop toycar stool bicycle --layouts one-ring half-arc wide \\
@@ -48,7 +52,7 @@ from ooi_seg_ros.seg.pipeline import make_config, segment  # noqa: E402
 from ooi_seg_ros.sim import make_scene  # noqa: E402
 
 LAYOUTS = ("orbit", "one-ring", "half-arc", "far", "wide", "wide-low", "barrel", "loose-aim",
-           "noisy", "vignette", "field")
+           "noisy", "vignette", "field", "bayer", "bayer-noisy")
 
 
 def layout(scene: str, name: str, seed: int) -> tuple[dict, tuple[int, int]]:
@@ -77,6 +81,10 @@ def layout(scene: str, name: str, seed: int) -> tuple[dict, tuple[int, int]]:
     if name == "field":
         return {"distortion": [-0.12, 0.03, 0.0, 0.0, 0.0], "vignetting": 0.3,
                 "sensor_noise": 4.0, "exposure_jitter": 0.08, "aim_jitter": 0.15}, (320, 240)
+    if name == "bayer":  # a real camera's sensor: one colour per pixel, demosaiced
+        return {"demosaic": True}, (320, 240)
+    if name == "bayer-noisy":  # "noisy" on that sensor (the noise drawn before demosaicing)
+        return {"demosaic": True, "sensor_noise": 6.0, "exposure_jitter": 0.1}, (320, 240)
     raise ValueError(f"unknown layout {name!r}; choose from {', '.join(LAYOUTS)}")
 
 

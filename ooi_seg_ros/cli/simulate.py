@@ -39,6 +39,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--vignetting", type=float, default=0.0,
                    help="lens light falloff: gain 1 - V r^2, r from the centre over the half "
                         "diagonal (default 0; 0.4 = corners at 60%%)")
+    p.add_argument("--demosaic", action="store_true",
+                   help="a Bayer sensor: one colour per pixel (RGGB), the noise on that mosaic, "
+                        "the image demosaiced as a camera delivers it (default: every pixel "
+                        "sees all three colours, independent noise)")
     p.add_argument("--list", action="store_true", help="print the scene names and exit")
     p.set_defaults(func=run)
 
@@ -121,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
                            rings=rings, hfov_deg=args.fov, supersample=args.supersample,
                            distortion=distortion, arc_deg=args.arc,
                            sensor_noise=args.noise, exposure_jitter=args.exposure_jitter,
-                           vignetting=args.vignetting)
+                           vignetting=args.vignetting, demosaic=args.demosaic)
     t1 = time.monotonic()
     capture_io.write_capture(sim.capture, args.out)
     cov = [float(v.gt_mask.mean()) for v in sim.capture.views]

@@ -47,6 +47,8 @@ class SimConfig:
     distortion: Optional[list[float]] = None  # plumb_bob [k1, k2, p1, p2, k3]; None = pinhole
     vignetting: float = 0.0  # the lens's light falloff toward the corners (gain 1 - v r^2, r
     # = distance from the principal point over the half diagonal; 0 = none, 0.4 = corners at 60%)
+    demosaic: bool = False  # a Bayer sensor: one colour per pixel (RGGB), the noise drawn on
+    # that mosaic, the image demosaiced (OpenCV edge-aware) -- a real camera's correlated noise
     arc_deg: float = 360.0  # azimuth span each ring flies: 360 = full orbits; less = a partial
     # orbit (an object beside a wall or a no-fly zone), views spread evenly over the arc
 
@@ -76,7 +78,7 @@ class SimCapture:
         res = Renderer(self.scene).render(view.camera, view.pose, cfg.supersample, None, 0.0,
                                           exposure, object_only=True,
                                           shade_subsamples=cfg.shade_subsamples,
-                                          vignetting=cfg.vignetting)
+                                          vignetting=cfg.vignetting, demosaic=cfg.demosaic)
         img = res.rgb.astype(np.float32) / 255.0
         return img
 
@@ -230,7 +232,8 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
         rng = _view_rng(cfg.seed, k)
         exposure = float(np.clip(1.0 + rng.normal(0, cfg.exposure_jitter), 0.8, 1.2))
         res = renderer.render(cam, pose, cfg.supersample, rng, cfg.sensor_noise, exposure,
-                              shade_subsamples=cfg.shade_subsamples, vignetting=cfg.vignetting)
+                              shade_subsamples=cfg.shade_subsamples, vignetting=cfg.vignetting,
+                              demosaic=cfg.demosaic)
         stamp = STAMP_BASE_NS + int(round(k * cfg.frame_interval_s * 1e9))
         views.append(View(key=str(stamp), stamp_ns=stamp, camera=cam, pose=pose,
                           image=res.rgb, gt_mask=res.mask, source=f"sim:{cfg.scene}"))
@@ -244,6 +247,8 @@ def simulate_capture(scene_name: str, n_views: int = 60, width: int = 320, heigh
         del meta["config"]["arc_deg"]
     if not cfg.vignetting:  # likewise
         del meta["config"]["vignetting"]
+    if not cfg.demosaic:  # likewise
+        del meta["config"]["demosaic"]
     capture = Capture(views=views, source=f"sim:{cfg.scene}:seed{cfg.seed}",
                       gt_ooi_points=scene.sample_ooi_points(cfg.gt_points, cfg.seed), meta=meta)
     return SimCapture(capture, scene, cfg, depths)

@@ -117,6 +117,24 @@ def undistort_normalized(xd: np.ndarray, yd: np.ndarray, cam: CameraIntrinsics,
     return x, y
 
 
+def _bayer_demosaic(img: np.ndarray, rng: Optional[np.random.Generator],
+                    sensor_noise: float) -> np.ndarray:
+    """uint8 RGB a camera delivers of the linear image ``img`` [h, w, 3] (0-255): the RGGB
+    mosaic's one value per pixel, with Gaussian noise of std ``sensor_noise`` (from ``rng``;
+    none without one), 8-bit, then OpenCV's edge-aware demosaicing (``BayerBG`` is OpenCV's
+    name for the RGGB layout)."""
+    import cv2
+    raw = np.empty(img.shape[:2], np.float32)
+    raw[0::2, 0::2] = img[0::2, 0::2, 0]
+    raw[0::2, 1::2] = img[0::2, 1::2, 1]
+    raw[1::2, 0::2] = img[1::2, 0::2, 1]
+    raw[1::2, 1::2] = img[1::2, 1::2, 2]
+    if rng is not None and sensor_noise > 0:
+        raw = raw + rng.normal(0.0, sensor_noise, raw.shape)
+    raw8 = np.clip(np.round(raw), 0, 255).astype(np.uint8)
+    return cv2.cvtColor(raw8, cv2.COLOR_BayerBG2RGB_EA)
+
+
 class Renderer:
     """Renders views of one scene; cheap to create, holds no per-view state."""
 
@@ -140,7 +158,8 @@ class Renderer:
     def render(self, cam: CameraIntrinsics, pose: Pose, supersample: int = 2,
                rng: Optional[np.random.Generator] = None, sensor_noise: float = 1.5,
                exposure: float = 1.0, object_only: bool = False,
-               shade_subsamples: bool = False, vignetting: float = 0.0) -> RenderResult:
+               shade_subsamples: bool = False, vignetting: float = 0.0,
+               demosaic: bool = False) -> RenderResult:
         """Render the view ``pose`` (camera-to-world, optical frame) with intrinsics ``cam``.
 
         ``sensor_noise`` is the std of additive Gaussian pixel noise in 0-255 units (drawn from
@@ -150,6 +169,9 @@ class Renderer:
         should render (shadows the rest of the scene casts on the object stay).
         ``vignetting``: the lens's light falloff, a gain 1 - vignetting * r^2 with r the distance
         from the principal point over the half diagonal (the corners darkest; 0 = none).
+        ``demosaic``: the sensor records one colour per pixel (an RGGB Bayer mosaic, the noise
+        drawn on it) and the image is OpenCV's edge-aware demosaicing of it, as a camera
+        delivers it -- the noise then correlated between neighbouring pixels and channels.
         ``shade_subsamples``: shade every sub-sample (the texture integrated over the pixel, as
         a camera does) instead of once per pixel whose sub-samples all hit the same part (the
         default, cheaper: texture detail finer than a pixel is then point-sampled).
@@ -230,6 +252,8 @@ class Renderer:
             yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
             r2 = ((xx + 0.5 - cam.cx) ** 2 + (yy + 0.5 - cam.cy) ** 2) / (0.25 * (W * W + H * H))
             img = img * (1.0 - float(vignetting) * r2)[..., None]
+        if demosaic:
+            return RenderResult(_bayer_demosaic(img, rng, sensor_noise), mask, depth)
         if rng is not None and sensor_noise > 0:
             img = img + rng.normal(0.0, sensor_noise, img.shape)
         rgb = np.clip(np.round(img), 0, 255).astype(np.uint8)
