@@ -25,7 +25,8 @@ Layouts (``SimConfig`` options; ring distances in OOI radii):
   ``field``     all of it at once, milder: barrel distortion as ``barrel``, vignetting 0.3,
                 sensor noise 4, 8% exposure swings, views aimed 0.15 OOI radii off (a cheap
                 drone on an overcast day)
-  ``bayer``     the scene's rings through a Bayer sensor: one colour per pixel (RGGB), the
+  ``bayer``     the scene's rings through a camera's optics and Bayer sensor: the lens's
+                low-pass (Gaussian 0.6 px), one colour per pixel (RGGB), the
                 image demosaiced (OpenCV edge-aware), its noise correlated between
                 neighbouring pixels as a real camera's (``demosaic``)
   ``bayer-noisy`` ``noisy`` on that sensor (the noise 6 drawn on the mosaic)

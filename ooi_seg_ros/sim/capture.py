@@ -47,8 +47,9 @@ class SimConfig:
     distortion: Optional[list[float]] = None  # plumb_bob [k1, k2, p1, p2, k3]; None = pinhole
     vignetting: float = 0.0  # the lens's light falloff toward the corners (gain 1 - v r^2, r
     # = distance from the principal point over the half diagonal; 0 = none, 0.4 = corners at 60%)
-    demosaic: bool = False  # a Bayer sensor: one colour per pixel (RGGB), the noise drawn on
-    # that mosaic, the image demosaiced (OpenCV edge-aware) -- a real camera's correlated noise
+    demosaic: bool = False  # a camera's optics and Bayer sensor: the lens's low-pass, one
+    # colour per pixel (RGGB), the noise drawn on that mosaic, the image demosaiced (OpenCV
+    # edge-aware) -- a real camera's softer image and correlated noise
     arc_deg: float = 360.0  # azimuth span each ring flies: 360 = full orbits; less = a partial
     # orbit (an object beside a wall or a no-fly zone), views spread evenly over the arc
 

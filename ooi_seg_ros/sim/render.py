@@ -117,13 +117,23 @@ def undistort_normalized(xd: np.ndarray, yd: np.ndarray, cam: CameraIntrinsics,
     return x, y
 
 
+# std (px) of the optical low-pass before a Bayer mosaic (``Renderer.render(demosaic=True)``):
+# a modulation of exp(-2 pi^2 0.6^2 0.5^2) = 0.17 at the pixel's Nyquist frequency, before the
+# pixel's own area -- a camera's lens and anti-aliasing filter pass 0.1-0.3 there
+BAYER_PSF_PX = 0.6
+
+
 def _bayer_demosaic(img: np.ndarray, rng: Optional[np.random.Generator],
                     sensor_noise: float) -> np.ndarray:
-    """uint8 RGB a camera delivers of the linear image ``img`` [h, w, 3] (0-255): the RGGB
+    """uint8 RGB a camera delivers of the linear image ``img`` [h, w, 3] (0-255): the lens's
+    and the sensor's optical low-pass first (a Gaussian of ``BAYER_PSF_PX``), then the RGGB
     mosaic's one value per pixel, with Gaussian noise of std ``sensor_noise`` (from ``rng``;
     none without one), 8-bit, then OpenCV's edge-aware demosaicing (``BayerBG`` is OpenCV's
-    name for the RGGB layout)."""
+    name for the RGGB layout). Without the low-pass the renders' point-sampled texture, whose
+    detail reaches the pixel, would alias into colour moire no camera shows."""
     import cv2
+    img = cv2.GaussianBlur(np.ascontiguousarray(img, np.float32), (0, 0), BAYER_PSF_PX,
+                           borderType=cv2.BORDER_REFLECT)
     raw = np.empty(img.shape[:2], np.float32)
     raw[0::2, 0::2] = img[0::2, 0::2, 0]
     raw[0::2, 1::2] = img[0::2, 1::2, 1]
@@ -169,9 +179,10 @@ class Renderer:
         should render (shadows the rest of the scene casts on the object stay).
         ``vignetting``: the lens's light falloff, a gain 1 - vignetting * r^2 with r the distance
         from the principal point over the half diagonal (the corners darkest; 0 = none).
-        ``demosaic``: the sensor records one colour per pixel (an RGGB Bayer mosaic, the noise
-        drawn on it) and the image is OpenCV's edge-aware demosaicing of it, as a camera
-        delivers it -- the noise then correlated between neighbouring pixels and channels.
+        ``demosaic``: the lens low-passes the image (``BAYER_PSF_PX``), the sensor records one
+        colour per pixel (an RGGB Bayer mosaic, the noise drawn on it) and the image is
+        OpenCV's edge-aware demosaicing of it, as a camera delivers it -- the noise then
+        correlated between neighbouring pixels and channels.
         ``shade_subsamples``: shade every sub-sample (the texture integrated over the pixel, as
         a camera does) instead of once per pixel whose sub-samples all hit the same part (the
         default, cheaper: texture detail finer than a pixel is then point-sampled).
