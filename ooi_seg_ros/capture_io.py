@@ -109,13 +109,22 @@ def read_capture_and_cloud(path: PathLike, *, downscale: float = 1.0,
     return read_image_folder(p, downscale=downscale), None
 
 
-def write_capture(capture: Capture, out: PathLike, compressed: bool = False) -> Path:
-    """Writes a bag when ``out`` ends in ``.mcap``, else a nerfstudio-style folder."""
+def write_capture(capture: Capture, out: PathLike, compressed: bool = False,
+                  jpeg_quality: int = 0) -> Path:
+    """Writes a bag when ``out`` ends in ``.mcap``, else a nerfstudio-style folder.
+
+    ``jpeg_quality`` 1-100: the images as JPEG at that quality (a bag's as CompressedImage,
+    as a camera's ``image/compressed`` topic delivers them; a folder's as ``.jpg`` files);
+    0: lossless (``compressed``: a bag's images as PNG CompressedImage)."""
     out = Path(out)
+    q = int(jpeg_quality)
+    if not 0 <= q <= 100:
+        raise InputError(f"JPEG quality {jpeg_quality}: use 1-100 (0 = lossless images)")
     if out.suffix == ".mcap":
-        write_capture_bag(capture, out, compressed=compressed)
+        write_capture_bag(capture, out, compressed=compressed or q > 0,
+                          image_format="jpeg" if q else "png", quality=q or 95)
     else:
-        write_capture_folder(capture, out)
+        write_capture_folder(capture, out, jpeg_quality=q)
     return out
 
 
@@ -420,12 +429,12 @@ def _bag_image_loader(reader, topic: str, stamp: int, log_t: int, size: tuple[in
 
 
 def write_capture_bag(capture: Capture, path: PathLike, compressed: bool = False,
-                      image_format: str = "png") -> Path:
+                      image_format: str = "png", quality: int = 95) -> Path:
     """A capture bag (images, camera_info, poses, ground truth); same capture -> same bytes.
 
     Messages are logged at their view stamps. Written atomically (``<path>.part`` renamed).
     ``compressed``: images as sensor_msgs/CompressedImage in ``image_format`` (png, lossless;
-    or jpeg at quality 95, as many drone cameras deliver them).
+    or jpeg at ``quality``, 95 by default, as many drone cameras deliver them).
     """
     from . import msgconv
     from .bag import BagWriter
@@ -459,7 +468,8 @@ def write_capture_bag(capture: Capture, path: PathLike, compressed: bool = False
                 w.write(POSE_TOPIC, msgconv.pose_to_pose_stamped(v.pose, stamp, "map"), t)
             w.write(INFO_TOPIC, msgconv.intrinsics_to_camera_info(v.camera, stamp), t)
             img = v.get_image()
-            w.write(img_topic, msgconv.rgb_to_compressed(img, stamp, fmt=image_format)
+            w.write(img_topic, msgconv.rgb_to_compressed(img, stamp, fmt=image_format,
+                                                         quality=quality)
                     if compressed
                     else msgconv.rgb_to_image(img, stamp), t)
             if v.gt_mask is not None:
@@ -600,11 +610,12 @@ def _ns_camera_dict(cam: CameraIntrinsics) -> dict:
     return d
 
 
-def write_capture_folder(capture: Capture, out: PathLike) -> Path:
+def write_capture_folder(capture: Capture, out: PathLike, jpeg_quality: int = 0) -> Path:
     """nerfstudio-style folder: transforms.json, images/*.png, masks/*.png, ooi_points.ply.
 
     Written into ``<out>.part`` and renamed when complete; an existing ``out`` is replaced only
-    if it is a capture folder (has transforms.json).
+    if it is a capture folder (has transforms.json). ``jpeg_quality`` 1-100: images/*.jpg at
+    that quality instead of PNG.
     """
     out = Path(out)
     if not capture.views:
@@ -621,7 +632,7 @@ def write_capture_folder(capture: Capture, out: PathLike) -> Path:
     if tmp.exists():
         shutil.rmtree(tmp)
     try:
-        _write_folder_contents(capture, tmp)
+        _write_folder_contents(capture, tmp, int(jpeg_quality))
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -631,7 +642,7 @@ def write_capture_folder(capture: Capture, out: PathLike) -> Path:
     return out
 
 
-def _write_folder_contents(capture: Capture, tmp: Path) -> None:
+def _write_folder_contents(capture: Capture, tmp: Path, jpeg_quality: int = 0) -> None:
     """Everything ``write_capture_folder`` writes, into ``tmp``."""
     from PIL import Image
 
@@ -644,12 +655,16 @@ def _write_folder_contents(capture: Capture, tmp: Path) -> None:
     if has_masks:
         (tmp / "masks").mkdir()
     for v, c in zip(capture.views, cams):
-        fr: dict = {"file_path": f"images/{v.key}.png", "stamp_ns": int(v.stamp_ns)}
+        ext = "jpg" if jpeg_quality else "png"
+        fr: dict = {"file_path": f"images/{v.key}.{ext}", "stamp_ns": int(v.stamp_ns)}
         img = v.get_image()
         if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
             raise InputError(f"view {v.key}: image is {img.dtype} {img.shape}, expected uint8 "
                              "[H, W, 3] RGB")
-        Image.fromarray(img).save(tmp / fr["file_path"], compress_level=6)
+        if jpeg_quality:
+            Image.fromarray(img).save(tmp / fr["file_path"], quality=int(jpeg_quality))
+        else:
+            Image.fromarray(img).save(tmp / fr["file_path"], compress_level=6)
         if v.pose is not None:
             fr["transform_matrix"] = pose_to_gl_c2w(v.pose).tolist()
         if v.gt_mask is not None:

@@ -43,6 +43,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="a Bayer sensor: one colour per pixel (RGGB), the noise on that mosaic, "
                         "the image demosaiced as a camera delivers it (default: every pixel "
                         "sees all three colours, independent noise)")
+    p.add_argument("--jpeg", type=int, default=0, metavar="Q",
+                   help="write the images as JPEG at quality Q (1-100): CompressedImage in a "
+                        "bag, .jpg files in a folder, as most drone cameras deliver them "
+                        "(default 0: lossless)")
     p.add_argument("--list", action="store_true", help="print the scene names and exit")
     p.set_defaults(func=run)
 
@@ -110,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
                           ("--vignetting", args.vignetting, 0.95)):
         if not 0.0 <= val <= hi:
             raise InputError(f"{flag} {val}: use a value within [0, {hi}]")
+    if not 0 <= args.jpeg <= 100:
+        raise InputError(f"--jpeg {args.jpeg}: use a quality within 1..100 (0 = lossless)")
     w, h = parse_size(args.size)
     rings = parse_rings(args.rings)
     distortion = parse_distortion(args.distortion)
@@ -127,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
                            sensor_noise=args.noise, exposure_jitter=args.exposure_jitter,
                            vignetting=args.vignetting, demosaic=args.demosaic)
     t1 = time.monotonic()
-    capture_io.write_capture(sim.capture, args.out)
+    capture_io.write_capture(sim.capture, args.out, jpeg_quality=args.jpeg)
     cov = [float(v.gt_mask.mean()) for v in sim.capture.views]
     print(f"scene {args.scene} (seed {args.seed}): {len(sim.capture)} views {w}x{h}, "
           f"OOI diagonal {sim.scene.ooi_diagonal:.3g} m, OOI covers "
